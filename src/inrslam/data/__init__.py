@@ -1,0 +1,1 @@
+"""Datasets: one protocol (`RGBDDataset`) yielding `Frame`s; readers per public layout."""

@@ -1,0 +1,13 @@
+"""Exception types. Every message names the file / key / frame and what was expected."""
+
+
+class InrslamError(Exception):
+    """Base class for errors a user can fix (bad input, bad config)."""
+
+
+class DataError(InrslamError):
+    """Missing, unreadable or inconsistent dataset files."""
+
+
+class ConfigError(InrslamError):
+    """Unknown keys, wrong types or invalid values in a configuration."""

@@ -1,0 +1,1 @@
+"""Camera geometry and SE(3): rays, projection, pose parameterisations, axis conventions."""

@@ -1,0 +1,64 @@
+"""Pinhole rays and projection (torch, device-agnostic). OpenCV axes; pixel centres at integer (u, v).
+
+A camera-frame ray direction is d = ((u - cx) / fx, (v - cy) / fy, 1): *not* normalised, so the ray parameter
+t equals the z-depth and a sensor depth map compares directly with t.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from inrslam.data.frame import Intrinsics
+
+
+def pixel_directions(intr: Intrinsics, u: Tensor, v: Tensor) -> Tensor:
+    """Camera-frame ray directions with z = 1.
+
+    Args:
+        intr: intrinsics.
+        u, v: (N,) pixel column / row (float or int).
+    Returns:
+        (N, 3) directions, dtype float32 unless u is floating.
+    """
+    dtype = u.dtype if u.is_floating_point() else torch.float32
+    x = (u.to(dtype) - intr.cx) / intr.fx
+    y = (v.to(dtype) - intr.cy) / intr.fy
+    return torch.stack([x, y, torch.ones_like(x)], dim=-1)
+
+
+def world_rays(c2w: Tensor, dirs_cam: Tensor) -> tuple[Tensor, Tensor]:
+    """Rotate camera-frame directions into the world.
+
+    Args:
+        c2w: (4, 4) or (N, 4, 4) camera-to-world.
+        dirs_cam: (N, 3) camera-frame directions.
+    Returns:
+        origins (N, 3) metres, directions (N, 3) (same length as the camera-frame ones).
+    """
+    R = c2w[..., :3, :3]
+    t = c2w[..., :3, 3]
+    if c2w.dim() == 2:
+        return t.expand(dirs_cam.shape[0], 3), dirs_cam @ R.T
+    return t, torch.einsum("nij,nj->ni", R, dirs_cam)
+
+
+def project(points_cam: Tensor, intr: Intrinsics) -> tuple[Tensor, Tensor]:
+    """Project camera-frame points. Returns (N, 2) pixel (u, v) and (N,) z-depth."""
+    z = points_cam[..., 2]
+    u = intr.fx * points_cam[..., 0] / z + intr.cx
+    v = intr.fy * points_cam[..., 1] / z + intr.cy
+    return torch.stack([u, v], dim=-1), z
+
+
+def backproject_depth(depth: Tensor, intr: Intrinsics) -> Tensor:
+    """(H, W) depth in metres -> (H, W, 3) camera-frame points (zeros where depth is 0)."""
+    H, W = depth.shape
+    v, u = torch.meshgrid(
+        torch.arange(H, device=depth.device, dtype=depth.dtype),
+        torch.arange(W, device=depth.device, dtype=depth.dtype),
+        indexing="ij",
+    )
+    x = (u - intr.cx) / intr.fx * depth
+    y = (v - intr.cy) / intr.fy * depth
+    return torch.stack([x, y, depth], dim=-1)

@@ -1,0 +1,115 @@
+"""SE(3) helpers and pose parameterisations (torch, differentiable, device-agnostic).
+
+Quaternions are (w, x, y, z), scalar first, and need not be unit length: the rotation matrix uses the
+factor 2/|q|^2 so the norm drops out (as the paper's code). The tangent-space parameterisation
+(`se3_exp`) is the default for tracking: it is well-defined at zero rotation (unlike the original axis-angle
+option, spec §13.15).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def quat_to_matrix(q: Tensor) -> Tensor:
+    """(..., 4) quaternion (w, x, y, z), any non-zero norm -> (..., 3, 3) rotation.
+
+    R = I + 2/|q|^2 [[-(y²+z²), xy - wz, xz + wy], [xy + wz, -(x²+z²), yz - wx], [xz - wy, yz + wx, -(x²+y²)]]
+    """
+    w, x, y, z = q.unbind(-1)
+    s = 2.0 / (q * q).sum(-1)
+    R = torch.stack(
+        [
+            1 - s * (y * y + z * z), s * (x * y - w * z), s * (x * z + w * y),
+            s * (x * y + w * z), 1 - s * (x * x + z * z), s * (y * z - w * x),
+            s * (x * z - w * y), s * (y * z + w * x), 1 - s * (x * x + y * y),
+        ],
+        dim=-1,
+    )
+    return R.reshape(q.shape[:-1] + (3, 3))
+
+
+def matrix_to_quat(R: Tensor) -> Tensor:
+    """(..., 3, 3) rotation -> (..., 4) unit quaternion (w, x, y, z) with w >= 0 (Shepperd's method)."""
+    m = R
+    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    cands = torch.stack(
+        [
+            torch.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+            torch.stack([m[..., 2, 1] - m[..., 1, 2], 1 + 2 * m[..., 0, 0] - tr, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+            torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 + 2 * m[..., 1, 1] - tr, m[..., 1, 2] + m[..., 2, 1]], -1),
+            torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 + 2 * m[..., 2, 2] - tr], -1),
+        ],
+        dim=-2,
+    )  # (..., 4, 4): row k is 4 * q_k * q
+    diag = torch.stack([1 + tr, 1 + 2 * m[..., 0, 0] - tr, 1 + 2 * m[..., 1, 1] - tr, 1 + 2 * m[..., 2, 2] - tr], -1)
+    k = diag.argmax(-1, keepdim=True)
+    q = torch.gather(cands, -2, k[..., None].expand(k.shape[:-1] + (1, 4))).squeeze(-2)
+    q = q / q.norm(dim=-1, keepdim=True)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def skew(v: Tensor) -> Tensor:
+    """(..., 3) -> (..., 3, 3) cross-product matrix [v]x."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(v.shape[:-1] + (3, 3))
+
+
+def so3_exp(omega: Tensor) -> Tensor:
+    """(..., 3) axis-angle -> (..., 3, 3) rotation (Rodrigues), smooth at 0 via Taylor series."""
+    theta2 = (omega * omega).sum(-1, keepdim=True)[..., None]
+    theta = theta2.clamp_min(1e-24).sqrt()
+    small = theta2 < 1e-8
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
+    K = skew(omega)
+    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand(K.shape)
+    return eye + a * K + b * (K @ K)
+
+
+def se3_exp(xi: Tensor) -> Tensor:
+    """(..., 6) twist (rho, omega) -> (..., 4, 4) SE(3) matrix; smooth at 0.
+
+    T = [[R, V rho], [0, 1]], R = exp([omega]x), V = I + (1-cos θ)/θ² K + (θ - sin θ)/θ³ K².
+    """
+    rho, omega = xi[..., :3], xi[..., 3:]
+    theta2 = (omega * omega).sum(-1, keepdim=True)[..., None]
+    theta = theta2.clamp_min(1e-24).sqrt()
+    small = theta2 < 1e-8
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
+    c = torch.where(small, 1.0 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (theta2 * theta).clamp_min(1e-36))
+    K = skew(omega)
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand(K.shape)
+    R = so3_exp(omega)
+    V = eye + b * K + c * (K @ K)
+    t = (V @ rho[..., None])[..., 0]
+    top = torch.cat([R, t[..., None]], -1)
+    bottom = torch.zeros(xi.shape[:-1] + (1, 4), dtype=xi.dtype, device=xi.device)
+    bottom[..., 0, 3] = 1
+    return torch.cat([top, bottom], -2)
+
+
+def compose_qt(q: Tensor, t: Tensor) -> Tensor:
+    """(..., 4) quaternion + (..., 3) translation -> (..., 4, 4) matrix."""
+    R = quat_to_matrix(q)
+    top = torch.cat([R, t[..., None]], -1)
+    bottom = torch.zeros(q.shape[:-1] + (1, 4), dtype=q.dtype, device=q.device)
+    bottom[..., 0, 3] = 1
+    return torch.cat([top, bottom], -2)
+
+
+def invert(T: Tensor) -> Tensor:
+    """(..., 4, 4) rigid transform -> inverse, using R^T."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3:]
+    Rt = R.transpose(-1, -2)
+    top = torch.cat([Rt, -Rt @ t], -1)
+    return torch.cat([top, T[..., 3:, :]], -2)
+
+
+def rotation_angle_deg(R: Tensor) -> Tensor:
+    """(..., 3, 3) rotation -> (...,) angle in degrees (clamped acos of (tr - 1) / 2)."""
+    tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    return torch.rad2deg(torch.acos(((tr - 1) / 2).clamp(-1.0, 1.0)))

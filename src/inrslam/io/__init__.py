@@ -1,0 +1,1 @@
+"""File formats and atomic writing (kept apart from the maths)."""

@@ -1,0 +1,69 @@
+"""TUM trajectory files: one line per pose, `timestamp tx ty tz qx qy qz qw` (scalar-last quaternion).
+
+Poses are camera-to-world. Lines starting with '#' and blank lines are ignored.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from inrslam.errors import DataError
+from inrslam.io.atomic import write_text
+
+
+def poses_to_tum_lines(timestamps: np.ndarray, c2w: np.ndarray) -> list[str]:
+    """(N,) seconds and (N, 4, 4) c2w -> TUM lines; non-finite poses are skipped."""
+    lines = []
+    for ts, T in zip(timestamps, c2w):
+        if not np.all(np.isfinite(T)):
+            continue
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
+        t = T[:3, 3]
+        lines.append(f"{ts:.6f} {t[0]:.9f} {t[1]:.9f} {t[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
+    return lines
+
+
+def write_tum(path: str | os.PathLike, timestamps: np.ndarray, c2w: np.ndarray, header: str | None = None) -> None:
+    """Atomically write a TUM trajectory file."""
+    lines = ([f"# {header}"] if header else []) + ["# timestamp tx ty tz qx qy qz qw"]
+    lines += poses_to_tum_lines(np.asarray(timestamps, dtype=np.float64), np.asarray(c2w, dtype=np.float64))
+    write_text(path, "\n".join(lines) + "\n")
+
+
+def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory. Returns (N,) timestamps and (N, 4, 4) c2w (float64).
+
+    Raises DataError naming the file and line for malformed lines.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: trajectory file not found")
+    ts, poses = [], []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.replace(",", " ").split()
+        if len(parts) != 8:
+            raise DataError(f"{path}:{lineno}: expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(parts)}")
+        try:
+            vals = np.array([float(p) for p in parts])
+        except ValueError:
+            raise DataError(f"{path}:{lineno}: non-numeric value in {s!r}") from None
+        if not np.all(np.isfinite(vals)):
+            raise DataError(f"{path}:{lineno}: non-finite value in {s!r}")
+        q = vals[4:8]
+        if np.linalg.norm(q) < 1e-9:
+            raise DataError(f"{path}:{lineno}: zero quaternion")
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
+        T[:3, 3] = vals[1:4]
+        ts.append(vals[0])
+        poses.append(T)
+    if not poses:
+        raise DataError(f"{path}: no poses found")
+    return np.array(ts), np.stack(poses)
