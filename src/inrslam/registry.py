@@ -10,7 +10,16 @@ import difflib
 from dataclasses import dataclass
 from typing import Any, Callable, Generic, TypeVar
 
+from inrslam.errors import InrslamError
+
 T = TypeVar("T")
+
+
+class UnknownName(InrslamError, KeyError):
+    """A name that is not registered (message names the closest registered one)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
 
 
 @dataclass(frozen=True)
@@ -47,7 +56,7 @@ class Registry(Generic[T]):
         try:
             return self._entries[name].obj
         except KeyError:
-            raise KeyError(self.unknown_message(name)) from None
+            raise UnknownName(self.unknown_message(name)) from None
 
     def unknown_message(self, name: str) -> str:
         close = difflib.get_close_matches(name, list(self._entries), n=1)

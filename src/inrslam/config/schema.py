@@ -1,0 +1,29 @@
+"""The root configuration: one typed tree, the single source of truth for a run."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from inrslam.data.config import DataConfig
+from inrslam.fields.config import FieldConfig
+from inrslam.rendering.config import LossConfig, RenderConfig, SamplingConfig
+from inrslam.slam.config import EvalConfig, MeshConfig, OutputConfig, SlamConfig
+
+
+@dataclass
+class RunConfig:
+    """Everything a run needs. Written resolved to `<out>/config.yaml`."""
+
+    data: DataConfig = field(default_factory=DataConfig)
+    field: FieldConfig = field(default_factory=FieldConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    slam: SlamConfig = field(default_factory=SlamConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    seed: int = 0  # seed of every random choice (pixels, jitter, initialisation)
+    device: str = "auto"  # auto (cuda if available), cpu, cuda, cuda:N
+    threads: int = 0  # torch/numba threads (0 = all cores)
+    faithful: bool = False  # reproduce the original code's documented quirks (spec §13) where they affect numbers

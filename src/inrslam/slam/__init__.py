@@ -1,0 +1,1 @@
+"""The SLAM loop: initialisation, tracking, mapping with bundle adjustment, keyframes, outputs, resume."""

@@ -1,0 +1,76 @@
+"""Options of the SLAM loop (defaults = the paper's settings, supplementary §1 / spec §7)."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+
+class PoseParam(str, enum.Enum):
+    """How a pose is optimised."""
+
+    QUAT = "quat"  # unnormalised quaternion + translation (the paper)
+    SE3 = "se3"  # left-multiplied se(3) twist around the initial pose (smooth at zero)
+
+
+@dataclass
+class SlamConfig:
+    """Tracking, mapping and keyframe settings."""
+
+    init_iters: int = 500  # optimisation iterations on the first frame
+    init_pixels: int = 2048  # rays per initialisation iteration
+    track_iters: int = 20  # pose iterations per frame
+    track_pixels: int = 1024  # rays per tracking iteration (drawn once per frame)
+    track_lr: float = 1e-3  # Adam learning rate of the pose
+    track_edge: int = 20  # pixels ignored at the image border during tracking
+    keep_best_pose: bool = True  # keep the lowest-loss pose (evaluating the final update too)
+    pose_param: PoseParam = PoseParam.QUAT  # pose parameterisation for tracking and BA
+    const_velocity: bool = True  # constant-velocity motion prediction
+    map_every: int = 5  # mapping + keyframe every N frames
+    map_iters: int = 20  # mapping iterations per call
+    map_pixels: int = 2048  # rays per mapping iteration drawn from the keyframe store
+    map_current_min: int = 100  # min current-frame rays per mapping iteration (max(map_pixels/#KF, this))
+    map_lr: float = 0.01  # Adam learning rate of the scene parameters
+    bundle_adjust: bool = True  # optimise keyframe poses (first keyframe fixed) during mapping
+    ba_lr: float = 1e-3  # Adam learning rate of keyframe poses
+    ba_pose_every: int = 5  # pose step every N mapping iterations (gradients accumulate in between)
+    keyframe_fraction: float = 0.05  # fraction of each keyframe's pixels stored for global sampling
+    keyframe_variant: bool = False  # Table-3 keyframe variant: store 0.5 % instead of keyframe_fraction
+    max_pose_jump: float = 0.5  # metres; a tracked pose moving more than this from the prediction is rejected
+    checkpoint_every: int = 50  # frames between checkpoints (0 = only at the end)
+    mesh_every: int = 0  # extract an intermediate mesh every N frames (0 = only at the end)
+
+
+@dataclass
+class MeshConfig:
+    """Marching cubes on the SDF inside the scene bounds."""
+
+    enabled: bool = True  # extract mesh.ply at the end
+    resolution: float = 0.02  # grid spacing in metres
+    chunk: int = 65536  # points per field query
+    color: bool = True  # query vertex colours from the colour decoder
+
+
+@dataclass
+class EvalConfig:
+    """End-of-run evaluation (see docs/metrics.md)."""
+
+    enabled: bool = True  # evaluate at the end of the run
+    heldout_every: int = 10  # full-frame renders of every N-th frame for held-out PSNR/SSIM/depth L1 (0 = off)
+    heldout_max: int = 20  # at most this many held-out renders
+    heldout_samples: int = 96  # uniform samples per ray in held-out renders (no measured depth used)
+    align: str = "se3"  # ATE alignment: se3, sim3 or none
+    mesh_metrics: bool = True  # accuracy / completion when a GT mesh exists
+    cull_every: int = 2  # every N-th GT camera for culling
+    cull_eps: float = 0.03  # occlusion tolerance in metres
+    n_samples: int = 200000  # surface samples per mesh
+    threshold: float = 0.05  # completion-ratio threshold in metres
+    icp: bool = False  # ICP alignment of the reconstruction before mesh metrics (off as the paper's protocol says)
+
+
+@dataclass
+class OutputConfig:
+    """What a run writes besides the mandatory outputs."""
+
+    tensorboard: bool = True  # TensorBoard scalars when tensorboard is installed
+    quiet: bool = False  # no progress bar / table

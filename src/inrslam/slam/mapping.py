@@ -1,0 +1,87 @@
+"""Mapping with global bundle adjustment over the keyframe ray store (spec §7.5)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from inrslam.slam.poses import PoseSet
+
+
+@dataclass
+class MapResult:
+    kf_c2w: Tensor  # (K, 4, 4) refined keyframe poses
+    cur_c2w: Tensor  # (4, 4) refined current pose
+    psnr: list = field(default_factory=list)  # per-iteration batch PSNR (dB)
+    depth_l1: list = field(default_factory=list)  # per-iteration batch depth L1 (m)
+    losses: list = field(default_factory=list)
+
+
+def map_frame(model, optimizers: dict, store, kf_c2w: Tensor, cur_c2w: Tensor, cur_rays, cfg, generator) -> MapResult:
+    """Jointly optimise the scene (every iteration) and keyframe + current poses (every `ba_pose_every`).
+
+    Args:
+        model: `SceneModel`; optimizers: its scene optimisers (from `make_optimizers`).
+        store: `KeyframeStore` with K >= 1 keyframes; kf_c2w: (K, 4, 4) their current poses.
+        cur_c2w: (4, 4) current frame pose; cur_rays: callable n -> (dirs_cam, rgb, depth) uniform over the frame.
+        cfg: `SlamConfig`.
+    """
+    K = len(store)
+    do_ba = cfg.bundle_adjust and K >= 2
+    all_c2w = torch.cat([kf_c2w, cur_c2w[None]])  # slot K = current frame
+    poses = PoseSet(all_c2w[1:], cfg.pose_param) if do_ba else None  # keyframe 0 fixed
+    pose_opt = torch.optim.Adam(poses.parameters(), lr=cfg.ba_lr) if do_ba else None
+    n_cur = max(cfg.map_pixels // K, cfg.map_current_min)
+    res = MapResult(kf_c2w.clone(), cur_c2w.clone())
+    for it in range(1, cfg.map_iters + 1):
+        slot, dirs_kf, rgb_kf, depth_kf = store.sample(cfg.map_pixels, generator)
+        dirs_c, rgb_c, depth_c = cur_rays(n_cur)
+        slots = torch.cat([slot, torch.full((dirs_c.shape[0],), K, dtype=torch.long, device=slot.device)])
+        mats = torch.cat([all_c2w[:1], poses.matrices()]) if do_ba else all_c2w
+        c2w = mats[slots]
+        losses, out = model.loss(c2w, torch.cat([dirs_kf, dirs_c]), torch.cat([rgb_kf, rgb_c]),
+                                 torch.cat([depth_kf, depth_c]), generator)
+        for opt in optimizers.values():
+            opt.zero_grad()
+        losses["total"].backward()
+        for opt in optimizers.values():
+            opt.step()
+        if do_ba and it % cfg.ba_pose_every == 0:
+            pose_opt.step()
+            pose_opt.zero_grad(set_to_none=True)
+        with torch.no_grad():
+            mse = float(losses["color_mse"]) if "color_mse" in losses else float(
+                ((out.rgb - torch.cat([rgb_kf, rgb_c])) ** 2).mean())
+            d = torch.cat([depth_kf, depth_c])
+            valid = d > 0
+            res.psnr.append(-10 * math.log10(max(mse, 1e-12)))
+            res.depth_l1.append(float((out.depth[valid] - d[valid]).abs().mean()) if valid.any() else float("nan"))
+            res.losses.append(float(losses["total"]))
+    if do_ba:
+        with torch.no_grad():
+            mats = torch.cat([all_c2w[:1], poses.matrices()])
+        res.kf_c2w, res.cur_c2w = mats[:K].detach().clone(), mats[K].detach().clone()
+    return res
+
+
+def initialise(model, optimizers: dict, frame_rays, iters: int, n_pixels: int, generator) -> list[float]:
+    """Fit the scene to the first frame (pose fixed) for `iters` iterations of `n_pixels` fresh random rays.
+
+    Args:
+        frame_rays: callable n -> (c2w (4,4), dirs_cam, rgb, depth).
+    Returns: the loss of every iteration.
+    """
+    hist = []
+    for _ in range(iters):
+        c2w, dirs, rgb, depth = frame_rays(n_pixels)
+        losses, _ = model.loss(c2w, dirs, rgb, depth, generator)
+        for opt in optimizers.values():
+            opt.zero_grad()
+        losses["total"].backward()
+        for opt in optimizers.values():
+            opt.step()
+        hist.append(float(losses["total"]))
+    return hist

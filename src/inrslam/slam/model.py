@@ -1,0 +1,117 @@
+"""The scene model of a run: a field F, a rendering function G and the ray-batch objective they share in
+initialisation, tracking and mapping (spec §6: the same total loss everywhere)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from inrslam.data.frame import Intrinsics
+from inrslam.fields import build_field, make_optimizer
+from inrslam.geometry.camera import pixel_directions
+from inrslam.rendering import build_renderer, compute_losses, render_rays, sample_depths
+
+
+class SceneModel(nn.Module):
+    """F x G with the configured sampling and losses.
+
+    Args:
+        cfg: the run's `RunConfig`.
+        bounds: (3, 2) scene box in metres.
+    """
+
+    def __init__(self, cfg, bounds: np.ndarray):
+        super().__init__()
+        self.cfg = cfg
+        self.field = build_field(cfg.field, np.asarray(bounds, dtype=np.float64))
+        self.renderer = build_renderer(cfg.render)
+        self.truncation = float(cfg.field.truncation)
+        self.register_buffer("bounds", torch.as_tensor(np.asarray(bounds), dtype=torch.float32))
+
+    # -- optimisers -------------------------------------------------------------------------------------------
+    def make_optimizers(self, lr: float) -> dict:
+        """Scene optimiser(s): the field's (sparse-aware) Adam, plus Adam on learnable G parameters if any."""
+        opts = {"field": make_optimizer(self.field, lr)}
+        g_params = [p for p in self.renderer.parameters() if p.requires_grad]
+        if g_params:
+            opts["render"] = torch.optim.Adam(g_params, lr=getattr(self.cfg.render, "param_lr", 1e-3))
+        return opts
+
+    # -- objective ----------------------------------------------------------------------------------------------
+    def loss(
+        self,
+        c2w: Tensor,
+        dirs_cam: Tensor,
+        rgb: Tensor,
+        depth: Tensor,
+        generator: torch.Generator | None,
+    ):
+        """Render rays and compute the loss terms.
+
+        Args:
+            c2w: (4, 4) or (R, 4, 4) camera-to-world per ray.
+            dirs_cam: (R, 3) camera-frame directions (z = 1).
+            rgb: (R, 3) observed colours; depth: (R,) observed depth in metres (0 = none).
+        Returns:
+            (dict of loss terms with 'total', RenderOutput)
+        """
+        if c2w.dim() == 2:
+            dirs = dirs_cam @ c2w[:3, :3].T
+            origins = c2w[:3, 3].expand_as(dirs)
+        else:
+            dirs = torch.einsum("rij,rj->ri", c2w[:, :3, :3], dirs_cam)
+            origins = c2w[:, :3, 3]
+        with torch.no_grad():
+            z = sample_depths(depth, dirs.detach(), origins.detach(), self.bounds, self.cfg.sampling,
+                              self.truncation, generator)
+        out = render_rays(self.field, self.renderer, origins, dirs, z, self.truncation)
+        losses = compute_losses(out, rgb, depth, self.cfg.loss, self.truncation)
+        return losses, out
+
+    # -- held-out rendering (no measured depth) -----------------------------------------------------------
+    @torch.no_grad()
+    def render_image(self, c2w: Tensor, intr: Intrinsics, n_coarse: int = 96, chunk: int = 4096) -> tuple[Tensor, Tensor]:
+        """Render a full frame *without* the measured depth: coarse uniform samples to the box exit, the first
+        + to - SDF crossing then serves as the depth guiding the standard free-space + surface sampling.
+
+        Returns: rgb (H, W, 3), depth (H, W) in metres.
+        """
+        dev = self.bounds.device
+        H, W = intr.height, intr.width
+        v, u = torch.meshgrid(torch.arange(H, device=dev), torch.arange(W, device=dev), indexing="ij")
+        dirs_cam = pixel_directions(intr, u.reshape(-1).float(), v.reshape(-1).float())
+        dirs_all = dirs_cam @ c2w[:3, :3].T
+        rgb_out, depth_out = [], []
+        for s in range(0, dirs_all.shape[0], chunk):
+            dirs = dirs_all[s:s + chunk]
+            origins = c2w[:3, 3].expand_as(dirs)
+            guess = self.surface_guess(origins, dirs, n_coarse)
+            z = sample_depths(guess, dirs, origins, self.bounds, self.cfg.sampling, self.truncation, None)
+            out = render_rays(self.field, self.renderer, origins, dirs, z, self.truncation)
+            rgb_out.append(out.rgb)
+            depth_out.append(out.depth)
+        return torch.cat(rgb_out).reshape(H, W, 3), torch.cat(depth_out).reshape(H, W)
+
+    @torch.no_grad()
+    def surface_guess(self, origins: Tensor, dirs: Tensor, n: int) -> Tensor:
+        """(R,) z of the first + to - SDF crossing on n uniform samples up to the box exit; 0 where none."""
+        zero = torch.zeros(dirs.shape[0], device=dirs.device)
+        sampling = _uniform_only(self.cfg.sampling, n)
+        z = sample_depths(zero, dirs, origins, self.bounds, sampling, self.truncation, None)
+        pts = origins[:, None, :] + z[..., None] * dirs[:, None, :]
+        sdf = self.field.sdf(pts.reshape(-1, 3)).reshape(z.shape)
+        cross = (sdf[:, :-1] > 0) & (sdf[:, 1:] <= 0)
+        has = cross.any(dim=1)
+        k = torch.argmax(cross.to(torch.int8), dim=1)
+        r = torch.arange(z.shape[0], device=z.device)
+        s0, s1 = sdf[r, k], sdf[r, k + 1]
+        t = s0 / (s0 - s1).clamp_min(1e-8)
+        zc = z[r, k] + t * (z[r, k + 1] - z[r, k])
+        return torch.where(has, zc, zero)
+
+
+def _uniform_only(sampling_cfg, n: int):
+    import dataclasses
+
+    return dataclasses.replace(sampling_cfg, n_uniform=n, jitter=False)

@@ -1,0 +1,47 @@
+"""Optimisable camera poses for tracking and bundle adjustment.
+
+Two parameterisations (`PoseParam`):
+- QUAT (the paper): an unnormalised quaternion (w, x, y, z) and a translation per pose; c2w = [R(q) | t].
+- SE3: a twist xi per pose applied on the left of the initial pose, c2w = exp(xi) @ c2w_0 (smooth at xi = 0).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from inrslam.geometry.se3 import compose_qt, matrix_to_quat, se3_exp
+from inrslam.slam.config import PoseParam
+
+
+class PoseSet(nn.Module):
+    """K camera-to-world poses as optimisable parameters.
+
+    Args:
+        c2w: (K, 4, 4) initial poses.
+        param: parameterisation.
+    """
+
+    def __init__(self, c2w: Tensor, param: PoseParam = PoseParam.QUAT):
+        super().__init__()
+        self.param = PoseParam(param)
+        c2w = c2w.detach()
+        if self.param is PoseParam.QUAT:
+            self.q = nn.Parameter(matrix_to_quat(c2w[:, :3, :3]).clone())
+            self.t = nn.Parameter(c2w[:, :3, 3].clone())
+        else:
+            self.register_buffer("base", c2w.clone())
+            self.xi = nn.Parameter(torch.zeros(c2w.shape[0], 6, dtype=c2w.dtype, device=c2w.device))
+
+    def matrices(self) -> Tensor:
+        """(K, 4, 4) current camera-to-world matrices (differentiable)."""
+        if self.param is PoseParam.QUAT:
+            return compose_qt(self.q, self.t)
+        return se3_exp(self.xi) @ self.base
+
+
+def constant_velocity(prev: Tensor, prev2: Tensor | None) -> Tensor:
+    """Predict the next c2w: (prev @ prev2^-1) @ prev (world-frame delta on the left); prev when prev2 is None."""
+    if prev2 is None:
+        return prev.clone()
+    return prev @ torch.linalg.inv(prev2) @ prev

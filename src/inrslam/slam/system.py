@@ -1,0 +1,358 @@
+"""The SLAM run: initialise on frame 0, track every frame, map + bundle-adjust every `map_every`-th frame, write
+a self-describing run directory, checkpoint and resume (spec §1, §7)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import inrslam
+from inrslam.config.loader import dump_config
+from inrslam.data.frame import Frame
+from inrslam.errors import ConfigError
+from inrslam.geometry.camera import pixel_directions
+from inrslam.io.atomic import append_jsonl, atomic_path, write_json, write_text
+from inrslam.io.trajectory import write_tum
+from inrslam.slam.keyframes import KeyframeStore
+from inrslam.slam.mapping import initialise, map_frame
+from inrslam.slam.mesh_extraction import extract_mesh
+from inrslam.slam.model import SceneModel
+from inrslam.slam.poses import constant_velocity
+from inrslam.slam.tracking import track_frame
+
+CHECKPOINT = "checkpoints/latest.pt"
+
+
+def resolve_device(name: str) -> torch.device:
+    """'auto' -> cuda if available else cpu."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"config key 'device': {name!r} requested but CUDA is not available")
+    return dev
+
+
+class FrameTensors:
+    """One frame on the device, with uniform ray sampling helpers."""
+
+    def __init__(self, frame: Frame, device: torch.device):
+        self.frame = frame
+        self.intr = frame.intrinsics
+        self.rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb, dtype=np.float32)).to(device).reshape(-1, 3)
+        self.depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32)).to(device).reshape(-1)
+        self.device = device
+
+    def rays(self, idx: torch.Tensor):
+        """(n,) flat pixel indices -> dirs_cam (n,3), rgb (n,3), depth (n,)."""
+        W = self.intr.width
+        u, v = (idx % W).float(), torch.div(idx, W, rounding_mode="floor").float()
+        return pixel_directions(self.intr, u, v), self.rgb[idx], self.depth[idx]
+
+    def sample(self, n: int, generator: torch.Generator, edge: int = 0):
+        """n pixels uniformly without replacement inside an `edge`-pixel border."""
+        H, W = self.intr.height, self.intr.width
+        h, w = H - 2 * edge, W - 2 * edge
+        if h <= 0 or w <= 0:
+            edge, h, w = 0, H, W
+        n = min(n, h * w)
+        flat = torch.randperm(h * w, generator=generator)[:n]
+        idx = (flat // w + edge) * W + (flat % w + edge)
+        return self.rays(idx.to(self.device))
+
+
+class SlamSystem:
+    """Runs SLAM on a dataset and writes the run directory `out_dir` (layout in docs/design.md)."""
+
+    def __init__(self, cfg, dataset, out_dir: str | os.PathLike, progress=None):
+        self.cfg = cfg
+        self.dataset = dataset
+        self.out = Path(out_dir)
+        self.progress = progress  # callable(frame_idx, n_frames, info: dict) or None
+        self.device = resolve_device(cfg.device)
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
+        torch.manual_seed(cfg.seed)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.n_frames = len(dataset)
+        if self.n_frames == 0:
+            raise ConfigError(f"dataset {getattr(dataset, 'root', '?')} has no frames")
+        self.bounds = np.asarray(dataset.bounds, dtype=np.float64)
+        self.model = SceneModel(cfg, self.bounds).to(self.device)
+        self.optimizers = self.model.make_optimizers(cfg.slam.map_lr)
+        self.store = KeyframeStore(device=self.device)
+        self.est = torch.full((self.n_frames, 4, 4), float("nan"), dtype=torch.float32, device=self.device)
+        self.gt = np.full((self.n_frames, 4, 4), np.nan)
+        self.timestamps = np.zeros(self.n_frames)
+        self.next_frame = 0
+        self.track_ms: list[float] = []
+        self.map_ms: list[float] = []
+        self.init_ms = 0.0
+        self.proc_psnr: list[float] = []
+        self.proc_depth_l1: list[float] = []
+        self.events: list[dict] = []
+        self.tb = None
+
+    # -- bookkeeping --------------------------------------------------------------------------------------
+    def _log(self, record: dict) -> None:
+        append_jsonl(self.out / "log.jsonl", record)
+        if self.tb is not None:
+            step = record.get("frame", 0)
+            for k, v in record.items():
+                if isinstance(v, (int, float)) and k != "frame" and math.isfinite(v):
+                    self.tb.add_scalar(f"{record.get('type', 'log')}/{k}", v, step)
+
+    def _open_tensorboard(self) -> None:
+        if not self.cfg.output.tensorboard:
+            return
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except Exception:  # tensorboard not installed: optional
+            return
+        self.tb = SummaryWriter(str(self.out / "tensorboard"))
+
+    def _keyframe_fraction(self) -> float:
+        return 0.005 if self.cfg.slam.keyframe_variant else self.cfg.slam.keyframe_fraction
+
+    def _write_run_info(self, status: str) -> None:
+        intr = self.dataset.intrinsics
+        info = {
+            "status": status,
+            "dataset": {"kind": getattr(self.dataset, "name", "?"), "root": str(getattr(self.dataset, "root", "")),
+                        "frames": self.n_frames},
+            "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
+                           "width": intr.width, "height": intr.height},
+            "bounds": self.bounds.tolist(),
+            "gt_mesh": str(self.dataset.gt_mesh) if getattr(self.dataset, "gt_mesh", None) else None,
+            "keyframes": list(self.store.frame_ids),
+            "frames_processed": self.next_frame,
+            "versions": {"inrslam": inrslam.__version__, "torch": torch.__version__, "numpy": np.__version__,
+                         "python": platform.python_version()},
+            "device": str(self.device),
+            "encoding": self.cfg.field.encoding,
+            "render": self.cfg.render.name,
+        }
+        write_json(self.out / "run_info.json", info)
+
+    # -- checkpoint -----------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        log = self.out / "log.jsonl"
+        return {
+            "next_frame": self.next_frame,
+            "model": self.model.state_dict(),
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "store": self.store.state_dict(),
+            "est": self.est.cpu(),
+            "gt": self.gt,
+            "timestamps": self.timestamps,
+            "generator": self.generator.get_state(),
+            "track_ms": self.track_ms, "map_ms": self.map_ms, "init_ms": self.init_ms,
+            "proc_psnr": self.proc_psnr, "proc_depth_l1": self.proc_depth_l1, "events": self.events,
+            "log_bytes": log.stat().st_size if log.exists() else 0,
+        }
+
+    def save_checkpoint(self) -> None:
+        with atomic_path(self.out / CHECKPOINT) as tmp:
+            torch.save(self.state_dict(), tmp)
+
+    def load_checkpoint(self) -> None:
+        path = self.out / CHECKPOINT
+        if not path.is_file():
+            raise ConfigError(f"{path}: no checkpoint to resume from")
+        st = torch.load(path, map_location="cpu", weights_only=False)
+        self.model.load_state_dict(st["model"])
+        for k, o in self.optimizers.items():
+            o.load_state_dict(st["optimizers"][k])
+        self.store.load_state_dict(st["store"])
+        self.est = st["est"].to(self.device)
+        self.gt, self.timestamps = st["gt"], st["timestamps"]
+        self.generator.set_state(st["generator"])
+        self.track_ms, self.map_ms, self.init_ms = st["track_ms"], st["map_ms"], st["init_ms"]
+        self.proc_psnr, self.proc_depth_l1, self.events = st["proc_psnr"], st["proc_depth_l1"], st["events"]
+        self.next_frame = st["next_frame"]
+        log = self.out / "log.jsonl"
+        if log.exists():  # drop records written after the checkpoint, so the resumed log equals an uninterrupted one
+            with open(log, "rb+") as f:
+                f.truncate(st["log_bytes"])
+
+    # -- the loop ----------------------------------------------------------------------------------------------
+    def run(self, resume: bool = False) -> Path:
+        """Process every frame, then write outputs and evaluate. Returns the run directory."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        if resume:
+            self.load_checkpoint()
+        else:
+            write_text(self.out / "config.yaml", dump_config(self.cfg))
+            (self.out / "log.jsonl").write_text("")
+        self._write_run_info("running")
+        self._open_tensorboard()
+        t_run = time.perf_counter()
+        ck_every = self.cfg.slam.checkpoint_every
+        for i in range(self.next_frame, self.n_frames):
+            frame = self.dataset[i]
+            self._process(i, frame)
+            self.next_frame = i + 1
+            if self.cfg.slam.mesh_every and (i + 1) % self.cfg.slam.mesh_every == 0:
+                self._write_mesh(self.out / "meshes" / f"mesh_{i:06d}.ply")
+            if ck_every and (i + 1) % ck_every == 0 and i + 1 < self.n_frames:
+                self.save_checkpoint()
+            if self.progress:
+                self.progress(i, self.n_frames, self._progress_info(i))
+        self.save_checkpoint()
+        wall_s = time.perf_counter() - t_run
+        self._finish(wall_s)
+        if self.tb is not None:
+            self.tb.close()
+        return self.out
+
+    def _progress_info(self, i: int) -> dict:
+        info = {"track_ms": self.track_ms[-1] if self.track_ms else 0.0}
+        if (i % 10 == 0 or i == self.n_frames - 1) and np.isfinite(self.gt[: i + 1]).all(axis=(1, 2)).sum() >= 3:
+            from inrslam.eval.trajectory import ate
+
+            info["ate_m"] = ate(self.est[: i + 1].double().cpu().numpy(), self.gt[: i + 1])["rmse"]
+        return info
+
+    def _process(self, i: int, frame: Frame) -> None:
+        cfg = self.cfg.slam
+        ft = FrameTensors(frame, self.device)
+        self.timestamps[i] = frame.timestamp
+        if frame.pose_valid and np.all(np.isfinite(frame.c2w)):
+            self.gt[i] = frame.c2w
+        n_valid_depth = int((ft.depth > 0).sum())
+        if i == 0:
+            c2w0 = torch.as_tensor(frame.c2w if frame.pose_valid else np.eye(4), dtype=torch.float32, device=self.device)
+            self.est[0] = c2w0
+            t0 = time.perf_counter()
+            hist = initialise(self.model, self.optimizers,
+                              lambda n: (c2w0,) + ft.sample(n, self.generator), cfg.init_iters, cfg.init_pixels,
+                              self.generator)
+            self.init_ms = (time.perf_counter() - t0) * 1e3
+            self._log({"type": "init", "frame": 0, "iters": len(hist), "loss_first": hist[0] if hist else None,
+                       "loss_last": hist[-1] if hist else None, "init_ms": self.init_ms})
+            self._add_keyframe(0, ft)
+            return
+        prev = self.est[i - 1]
+        pred = constant_velocity(prev, self.est[i - 2] if (i >= 2 and cfg.const_velocity) else None)
+        t0 = time.perf_counter()
+        if n_valid_depth == 0:
+            # no depth: colour-only tracking is ill-posed at the paper's settings; keep the prediction
+            c2w, loss, fallback, iters = pred, float("nan"), "no_valid_depth", 0
+        else:
+            dirs, rgb, depth = ft.sample(cfg.track_pixels, self.generator, edge=cfg.track_edge)
+            res = track_frame(self.model, pred, dirs, rgb, depth, cfg, self.generator, cfg.max_pose_jump)
+            c2w, loss, fallback, iters = res.c2w, res.best_loss, res.fallback, res.iters
+        track_ms = (time.perf_counter() - t0) * 1e3
+        self.track_ms.append(track_ms)
+        self.est[i] = c2w
+        rec = {"type": "track", "frame": i, "loss": loss, "track_ms": track_ms, "iters": iters}
+        if fallback:
+            rec["fallback"] = fallback
+            self.events.append({"frame": i, "event": fallback})
+        self._log(rec)
+        if i % cfg.map_every == 0:
+            self._map(i, ft)
+
+    def _map(self, i: int, ft: FrameTensors) -> None:
+        cfg = self.cfg.slam
+        kf_ids = list(self.store.frame_ids)
+        t0 = time.perf_counter()
+        res = map_frame(self.model, self.optimizers, self.store, self.est[kf_ids], self.est[i],
+                        lambda n: ft.sample(n, self.generator), cfg, self.generator)
+        map_ms = (time.perf_counter() - t0) * 1e3
+        self.map_ms.append(map_ms)
+        if all(torch.isfinite(res.kf_c2w).all(dim=(1, 2))) and bool(torch.isfinite(res.cur_c2w).all()):
+            self.est[kf_ids] = res.kf_c2w
+            self.est[i] = res.cur_c2w
+        else:
+            self.events.append({"frame": i, "event": "ba_nan"})
+        self.proc_psnr += res.psnr
+        self.proc_depth_l1 += [d for d in res.depth_l1 if math.isfinite(d)]
+        self._log({"type": "map", "frame": i, "map_ms": map_ms, "keyframes": len(kf_ids),
+                   "loss": res.losses[-1] if res.losses else None,
+                   "psnr": float(np.mean(res.psnr)) if res.psnr else None,
+                   "depth_l1": float(np.nanmean(res.depth_l1)) if res.depth_l1 else None})
+        self._add_keyframe(i, ft)
+
+    def _add_keyframe(self, i: int, ft: FrameTensors) -> None:
+        H, W = ft.intr.height, ft.intr.width
+        n = max(1, int(round(self._keyframe_fraction() * H * W)))
+        idx = torch.randperm(H * W, generator=self.generator)[:n].to(self.device)
+        dirs, rgb, depth = ft.rays(idx)
+        self.store.add(i, dirs, rgb, depth)
+
+    # -- outputs -------------------------------------------------------------------------------------------------
+    def _write_mesh(self, path: Path) -> bool:
+        m = self.cfg.mesh
+        mesh = extract_mesh(self.model.field, self.bounds, m.resolution, m.chunk, m.color)
+        if mesh is None:
+            self.events.append({"frame": self.next_frame - 1, "event": "empty_mesh"})
+            return False
+        with atomic_path(path) as tmp:
+            mesh.export(tmp)
+        return True
+
+    def _peak_memory_mb(self) -> float:
+        if self.device.type == "cuda":
+            return torch.cuda.max_memory_allocated(self.device) / 2**20
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+    def _finish(self, wall_s: float) -> None:
+        from inrslam.fields import model_size_mb
+
+        est = self.est.double().cpu().numpy()
+        write_tum(self.out / "trajectory.txt", self.timestamps, est, header="inrslam estimated c2w (OpenCV axes)")
+        if np.isfinite(self.gt).all(axis=(1, 2)).any():
+            write_tum(self.out / "trajectory_gt.txt", self.timestamps, self.gt, header="ground-truth c2w (OpenCV axes)")
+        write_json(self.out / "keyframes.json", {"keyframes": list(self.store.frame_ids)})
+        if self.cfg.mesh.enabled:
+            self._write_mesh(self.out / "mesh.ply")
+        metrics = {
+            "frames": self.n_frames,
+            "track_ms_per_frame": float(np.mean(self.track_ms)) if self.track_ms else None,
+            "map_ms_per_call": float(np.mean(self.map_ms)) if self.map_ms else None,
+            "init_ms": self.init_ms,
+            "wall_time_s": wall_s,
+            "model_size_mb": model_size_mb(self.model.field),
+            "model_size_with_optimizer_mb": model_size_mb(self.model.field, with_optimizer=True),
+            "peak_memory_mb": self._peak_memory_mb(),
+            "psnr_process_db": float(np.mean(self.proc_psnr)) if self.proc_psnr else None,
+            "depth_l1_process_m": float(np.mean(self.proc_depth_l1)) if self.proc_depth_l1 else None,
+            "fallbacks": len(self.events),
+            "encoding": self.cfg.field.encoding,
+            "render": self.cfg.render.name,
+        }
+        if self.cfg.eval.enabled and self.cfg.eval.heldout_every:
+            metrics.update(self._heldout_metrics())
+        write_json(self.out / "metrics.json", metrics)
+        self._write_run_info("evaluating")
+        if self.cfg.eval.enabled:
+            from inrslam.eval.run import evaluate_run
+
+            evaluate_run(self.out, self.cfg.eval)
+        self._write_run_info("complete")
+
+    @torch.no_grad()
+    def _heldout_metrics(self) -> dict:
+        from inrslam.eval.image import depth_l1, psnr, ssim
+
+        ev = self.cfg.eval
+        idx = list(range(0, self.n_frames, ev.heldout_every))[: ev.heldout_max]
+        ps, ss, dl = [], [], []
+        for i in idx:
+            frame = self.dataset[i]
+            rgb, depth = self.model.render_image(self.est[i], frame.intrinsics, n_coarse=ev.heldout_samples)
+            pred_rgb, pred_depth = rgb.clamp(0, 1).cpu().numpy(), depth.cpu().numpy()
+            ps.append(float(psnr(pred_rgb, frame.rgb)))
+            ss.append(float(ssim(pred_rgb, frame.rgb)))
+            dl.append(float(depth_l1(pred_depth, frame.depth)))
+        return {"psnr_db": float(np.mean(ps)), "ssim": float(np.mean(ss)), "depth_l1_m": float(np.nanmean(dl)),
+                "heldout_frames": idx}

@@ -1,0 +1,74 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from inrslam.geometry import se3
+from inrslam.geometry.conventions import opencv_to_opengl, opengl_to_opencv
+
+
+def random_rotations(n, seed=0):
+    return torch.from_numpy(Rotation.random(n, random_state=seed).as_matrix())
+
+
+def test_quat_roundtrip_and_norm_invariance():
+    R = random_rotations(50)
+    q = se3.matrix_to_quat(R)
+    assert torch.allclose(q.norm(dim=-1), torch.ones(50, dtype=q.dtype))
+    assert torch.allclose(se3.quat_to_matrix(q), R, atol=1e-12)
+    # unnormalised quaternions give the same rotation (factor 2/|q|^2)
+    assert torch.allclose(se3.quat_to_matrix(3.7 * q), R, atol=1e-12)
+    # agrees with scipy (scalar-last there)
+    qs = Rotation.from_matrix(R.numpy()).as_quat()
+    ours = q.numpy()[:, [1, 2, 3, 0]]
+    assert np.allclose(np.abs((qs * ours).sum(-1)), 1.0, atol=1e-12)
+
+
+def test_se3_exp_group_properties():
+    torch.manual_seed(0)
+    xi = torch.randn(20, 6, dtype=torch.float64) * 0.5
+    T = se3.se3_exp(xi)
+    R = T[:, :3, :3]
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(20, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(20, dtype=torch.float64))
+    # exp(xi) exp(-xi) = I  (one-parameter subgroup)
+    assert torch.allclose(T @ se3.se3_exp(-xi), torch.eye(4, dtype=torch.float64).expand(20, 4, 4), atol=1e-12)
+    # inverse via R^T
+    assert torch.allclose(se3.invert(T) @ T, torch.eye(4, dtype=torch.float64).expand(20, 4, 4), atol=1e-12)
+    # rotation part equals scipy's rotation vector exp
+    Rs = Rotation.from_rotvec(xi[:, 3:].numpy()).as_matrix()
+    assert np.allclose(R.numpy(), Rs, atol=1e-12)
+
+
+def test_se3_exp_smooth_at_zero_and_gradcheck():
+    xi0 = torch.zeros(1, 6, dtype=torch.float64, requires_grad=True)
+    T = se3.se3_exp(xi0)
+    assert torch.allclose(T, torch.eye(4, dtype=torch.float64)[None])
+    assert torch.autograd.gradcheck(se3.se3_exp, (xi0,))
+    xi = (torch.randn(3, 6, dtype=torch.float64) * 0.3).requires_grad_()
+    assert torch.autograd.gradcheck(se3.se3_exp, (xi,))
+    # derivative at zero is the generator: d/d(omega_z) of R[0,1] = -1
+    T = se3.se3_exp(xi0)
+    (g,) = torch.autograd.grad(T[0, 0, 1], xi0)
+    assert g[0, 5].item() == pytest.approx(-1.0)
+
+
+def test_quat_to_matrix_gradcheck():
+    q = torch.randn(4, 4, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(se3.quat_to_matrix, (q,))
+
+
+def test_rotation_angle():
+    R = torch.from_numpy(Rotation.from_rotvec([0, 0, math.radians(30)]).as_matrix())
+    assert se3.rotation_angle_deg(R).item() == pytest.approx(30.0)
+
+
+def test_opengl_opencv_is_involution_and_flips_axes():
+    T = np.eye(4)
+    T[:3, 3] = [1, 2, 3]
+    cv = opengl_to_opencv(T)
+    assert np.allclose(cv[:3, 1], [0, -1, 0]) and np.allclose(cv[:3, 2], [0, 0, -1])
+    assert np.allclose(opencv_to_opengl(cv), T)
+    assert np.allclose(cv[:3, 3], T[:3, 3])
