@@ -1,0 +1,235 @@
+"""Shared machinery of the folder readers: file pairing, intrinsics resolution, lazy frame reading."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from pathlib import Path
+from typing import ClassVar, Iterator, Optional, Sequence
+
+import numpy as np
+
+from inrslam.data.config import DataConfig
+from inrslam.data.frame import Frame, Intrinsics
+from inrslam.data.images import image_size, read_depth, read_rgb
+from inrslam.errors import ConfigError, DataError
+
+_DIGITS = re.compile(r"(\d+)")
+
+
+def natural_key(path: Path | str) -> list:
+    """Sort key treating digit runs as numbers ('img10' after 'img9')."""
+    name = Path(path).name
+    return [int(t) if t.isdigit() else t.lower() for t in _DIGITS.split(name)]
+
+
+def numbered_files(folder: Path, pattern: str) -> dict[int, Path]:
+    """Files in `folder` whose name fully matches regex `pattern` (one group = the frame number) -> {number: path}."""
+    rx = re.compile(pattern)
+    out: dict[int, Path] = {}
+    if not folder.is_dir():
+        return out
+    for p in folder.iterdir():
+        m = rx.fullmatch(p.name)
+        if m:
+            n = int(m.group(1))
+            if n in out:
+                raise DataError(f"{folder}: two files for frame {n}: {out[n].name} and {p.name}")
+            out[n] = p
+    return out
+
+
+def pair_numbered(colour: dict[int, Path], depth: dict[int, Path], colour_glob: str, depth_glob: str) -> list[int]:
+    """Sorted frame numbers present in both maps; raise DataError naming a file without its counterpart."""
+    if not colour:
+        raise DataError(f"no colour images found (expected {colour_glob})")
+    if not depth:
+        raise DataError(f"no depth images found (expected {depth_glob})")
+    only_c = sorted(set(colour) - set(depth))
+    only_d = sorted(set(depth) - set(colour))
+    if only_c or only_d:
+        example = colour[only_c[0]] if only_c else depth[only_d[0]]
+        kind = "depth" if only_c else "colour"
+        raise DataError(
+            f"count mismatch: {len(colour)} colour images ({colour_glob}) vs {len(depth)} depth images "
+            f"({depth_glob}); {example} has no matching {kind} image"
+        )
+    return sorted(colour)
+
+
+def check_count(n_frames: int, n_poses: int, pose_file: Path | str) -> None:
+    """Raise DataError unless there is exactly one pose per frame."""
+    if n_frames != n_poses:
+        raise DataError(
+            f"{pose_file}: count mismatch: {n_poses} poses for {n_frames} colour/depth frames (expected one per frame)"
+        )
+
+
+class FolderDataset:
+    """Base of the folder readers (an `RGBDDataset`). Subclasses implement `detect` and `_scan`.
+
+    `_scan` fills: `_rgb`, `_depth` (lists of paths), `_c2w` (N, 4, 4) OpenCV camera-to-world (NaN if invalid),
+    `_valid` (N,) bool, `_timestamps` (N,) seconds, `_ids` (N,) frame numbers in the files, and returns the default
+    intrinsics (or None when the size comes from the images).
+    """
+
+    name: ClassVar[str] = "folder"
+    layout: ClassVar[str] = ""  # human-readable list of the files the reader expects (for error messages)
+    fps: ClassVar[float] = 30.0
+    default_depth_scale: ClassVar[float] = 1000.0
+    invalid_depth: ClassVar[tuple[int, ...]] = ()  # raw depth values meaning "no measurement" besides 0
+    resize_colour: ClassVar[bool] = False  # True: colour is resized to the depth size (ScanNet)
+    floors_intrinsics: ClassVar[bool] = True  # the original code floor-divided this layout's intrinsics (faithful mode)
+
+    root: Path
+    intrinsics: Intrinsics
+    bounds: Optional[np.ndarray]
+    gt_mesh: Optional[Path]
+
+    def __init__(self, root: str | os.PathLike, cfg: DataConfig | None = None):
+        self.root = Path(root)
+        self.cfg = cfg if cfg is not None else DataConfig(path=str(root))
+        if not self.root.is_dir():
+            raise DataError(f"{self.root}: dataset folder not found (expected {self.layout})")
+        self.depth_scale = float(self.cfg.depth_scale) if self.cfg.depth_scale is not None else self.default_depth_scale
+        if not self.depth_scale > 0:
+            raise ConfigError(f"data.depth_scale: must be > 0, got {self.cfg.depth_scale}")
+        self.bounds = None
+        self.gt_mesh = None
+        self._rgb: list[Path] = []
+        self._depth: list[Path] = []
+        self._ids = np.zeros(0, dtype=np.int64)
+        default = self._scan()
+        if not self._rgb:
+            raise DataError(f"{self.root}: no frames found (expected {self.layout})")
+        if not (len(self._rgb) == len(self._depth) == len(self._c2w) == len(self._valid) == len(self._timestamps)):
+            raise AssertionError("reader produced inconsistent per-frame lists")  # programming error, not user input
+        self.intrinsics = self._resolve_intrinsics(default)
+
+    # --- to implement -------------------------------------------------------------------------------------------
+    @classmethod
+    def detect(cls, root: Path) -> bool:
+        """True if `root` looks like this layout (cheap: names only, no file reading)."""
+        raise NotImplementedError
+
+    def _scan(self) -> Optional[Intrinsics]:
+        raise NotImplementedError
+
+    # --- shared -------------------------------------------------------------------------------------------------
+    def _resolve_intrinsics(self, default: Optional[Intrinsics]) -> Intrinsics:
+        """Override [fx, fy, cx, cy] or the layout default; image size from the first depth image header."""
+        width, height = image_size(self._depth[0])
+        if self.cfg.intrinsics is not None:
+            vals = list(self.cfg.intrinsics)
+            if len(vals) != 4:
+                raise ConfigError(f"data.intrinsics: expected [fx, fy, cx, cy], got {vals}")
+            return Intrinsics(*(float(v) for v in vals), width, height)
+        if default is None:
+            raise DataError(f"{self.root}: no intrinsics found and data.intrinsics not set")
+        if self.cfg.faithful_intrinsics and self.floors_intrinsics:
+            fl = math.floor
+            d = default
+            default = Intrinsics(fl(d.fx), fl(d.fy), fl(d.cx), fl(d.cy), d.width, d.height)
+        if (default.width, default.height) != (width, height):
+            raise DataError(
+                f"{self._depth[0]}: image is {width}x{height} but the {self.name} intrinsics are for "
+                f"{default.width}x{default.height}; set data.intrinsics = [fx, fy, cx, cy] for this size"
+            )
+        return default
+
+    def __len__(self) -> int:
+        return len(self._rgb)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) float64 ground-truth camera-to-world (OpenCV axes), all-NaN where invalid (no image reads)."""
+        return self._c2w.copy()
+
+    @property
+    def pose_valid(self) -> np.ndarray:
+        """(N,) bool: ground-truth pose known."""
+        return self._valid.copy()
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """(N,) float64 seconds."""
+        return self._timestamps.copy()
+
+    def __getitem__(self, i: int) -> Frame:
+        n = len(self)
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError(f"frame {i} out of range for {n} frames")
+        rgb_path, depth_path = self._rgb[i], self._depth[i]
+        depth = read_depth(depth_path, self.depth_scale, self.invalid_depth)
+        H, W = depth.shape
+        intr = self.intrinsics
+        if (W, H) != (intr.width, intr.height):
+            raise DataError(
+                f"{depth_path}: frame {i}: depth is {W}x{H}, expected {intr.width}x{intr.height} like the first frame"
+            )
+        rgb = read_rgb(rgb_path, size=(W, H) if self.resize_colour else None)
+        if rgb.shape[:2] != (H, W):
+            raise DataError(
+                f"{rgb_path}: frame {i}: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth {depth_path.name} "
+                f"is {W}x{H} (expected the same size)"
+            )
+        return Frame(
+            index=i,
+            timestamp=float(self._timestamps[i]),
+            rgb=rgb,
+            depth=depth,
+            intrinsics=intr,
+            c2w=self._c2w[i].copy(),
+            pose_valid=bool(self._valid[i]),
+            source=str(rgb_path),
+            meta={"depth_file": str(depth_path), "frame_id": int(self._ids[i])},
+        )
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(root={str(self.root)!r}, frames={len(self)}, intrinsics={self.intrinsics})"
+
+
+def known_bounds(table: dict[str, Sequence[Sequence[float]]], name: str) -> Optional[np.ndarray]:
+    """(3, 2) bounds from `table` when the folder `name` is a key, else None."""
+    b = table.get(name)
+    return None if b is None else np.array(b, dtype=np.float64)
+
+
+def read_camera_json(path: Path, section: Optional[str] = None) -> dict[str, float]:
+    """Camera parameters from a JSON file (`cam_params.json` of Replica, `intrinsics.json` of our TUM exports).
+
+    Returns the numeric entries of the top level (or of `section`), e.g. fx, fy, cx, cy, w/width, h/height, scale.
+    """
+    try:
+        data = json.loads(path.read_text())
+        if section is not None:
+            data = data[section]
+        out = {k: float(v) for k, v in data.items() if isinstance(v, (int, float))}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        raise DataError(f"{path}: cannot read camera parameters ({type(e).__name__}: {e})") from None
+    missing = [k for k in ("fx", "fy", "cx", "cy") if k not in out]
+    if missing:
+        raise DataError(f"{path}: missing camera parameters {missing} (expected fx, fy, cx, cy)")
+    return out
+
+
+def require_dir(path: Path, layout: str) -> None:
+    """Raise DataError naming `path` unless it is a folder."""
+    if not path.is_dir():
+        raise DataError(f"{path}: folder not found (expected {layout})")
+
+
+def first_existing(paths: Sequence[Path]) -> Optional[Path]:
+    """The first path that is a file, or None."""
+    for p in paths:
+        if p.is_file():
+            return p
+    return None

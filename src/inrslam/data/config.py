@@ -1,0 +1,32 @@
+"""Options of the dataset readers (`data:` section of a run config)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+from inrslam.scenes.config import SceneConfig
+
+
+@dataclass
+class DataConfig:
+    """Which RGB-D sequence to read and how. Overrides apply to folder datasets (and bounds/cropping to all)."""
+
+    path: str = "builtin:room"  # dataset folder, or builtin:NAME for a built-in procedural scene
+    dataset: str = "auto"  # reader name (replica, neuralrgbd, scannet, tum, 7scenes) or auto = detect the layout
+    max_frames: int = 0  # keep at most this many frames after start/stride; 0 = all
+    stride: int = 1  # keep every stride-th frame
+    start: int = 0  # index of the first frame kept
+    depth_scale: Optional[float] = None  # raw units per metre; None = per reader (replica 6553.5, tum 5000, else 1000)
+    intrinsics: Optional[list[float]] = None  # [fx, fy, cx, cy] px of the files on disk; None = reader's
+    bounds: Optional[list[list[float]]] = None  # [[xmin, xmax], [ymin, ymax], [zmin, zmax]] m; None = table/estimate
+    bounds_frames: int = 20  # number of first frames back-projected when estimating bounds
+    bounds_margin: float = 0.2  # metres added on every side of estimated bounds
+    crop_edge: int = 0  # pixels removed on every image side (cx, cy shifted accordingly)
+    depth_max: float = 0.0  # metres; depth beyond it is set to 0 (invalid); 0 = no clamp
+    faithful_intrinsics: bool = False  # floor default intrinsics like the original (replica cx/cy 599/339, nrgbd f 554)
+    sequence: str = ""  # 7scenes: frame sub-folder when there are several (e.g. seq-02); "" = the only one
+    neuralrgbd_depth_dir: str = "depth_filtered"  # neuralrgbd: depth folder (depth_filtered as the paper, or depth)
+    tum_max_dt_depth: float = 0.02  # tum: max |t_rgb - t_depth| in seconds for a colour/depth pair
+    tum_max_dt_pose: float = 0.02  # tum: max |t_rgb - t_gt| s for the nearest GT pose; farther = invalid
+    builtin: SceneConfig = field(default_factory=SceneConfig)  # options of builtin:NAME scenes

@@ -1,0 +1,168 @@
+"""Each reader on a fixture in its exact public layout: counts, arrays, units, intrinsics, pose conventions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import H, W, green, make_7scenes, make_neuralrgbd, make_replica, make_scannet, make_tum
+
+from inrslam.data import DATASETS, DataConfig, Frame, RGBDDataset, open_folder
+from inrslam.data.neuralrgbd import FOCAL
+from inrslam.errors import DataError
+
+JPEG_TOL = 3 / 255
+
+
+def test_common_contract(layout):
+    name, lay = layout
+    # Replica / NeuralRGBD / TUM have fixed cameras (1200x680, 640x480): the 32x24 fixtures need an override
+    cfg = DataConfig(intrinsics=[20.0, 21.0, 15.5, 11.5]) if name in ("replica", "neuralrgbd", "tum") else None
+    ds = DATASETS.get(name)(lay.root, cfg)
+    assert isinstance(ds, RGBDDataset)
+    assert ds.name == name and len(ds) == lay.n
+    frames = list(ds)
+    assert len(frames) == lay.n
+    for k, f in enumerate(frames):
+        assert isinstance(f, Frame) and f.index == k
+        assert f.rgb.shape == (H, W, 3) and f.rgb.dtype == np.float32
+        assert f.depth.shape == (H, W) and f.depth.dtype == np.float32
+        assert f.intrinsics.width == W and f.intrinsics.height == H
+        assert 0.0 <= f.rgb.min() and f.rgb.max() <= 1.0
+        np.testing.assert_allclose(f.rgb[5, 5], np.array([200, green(k), 100]) / 255, atol=JPEG_TOL)
+        # depth in metres: 1000 (k + 1) raw units; raw 0 stays 0; raw 40000 (> 32767) read exactly
+        assert f.depth[5, 5] == pytest.approx(1000 * (k + 1) / lay.depth_scale, rel=1e-6)
+        assert f.depth[0, 0] == 0.0
+        assert f.depth[1, 2] == pytest.approx(40000 / lay.depth_scale, rel=1e-6)
+        assert f.c2w.dtype == np.float64 and f.c2w.shape == (4, 4)
+        assert f.pose_valid == lay.valid[k]
+        if lay.valid[k]:
+            np.testing.assert_allclose(f.c2w, lay.poses[k], atol=1e-6)
+        else:
+            assert np.all(np.isnan(f.c2w))
+        assert f.timestamp == pytest.approx(lay.timestamps[k], abs=1e-6)
+    np.testing.assert_array_equal(ds.pose_valid, lay.valid)
+    assert ds[-1].index == lay.n - 1
+    with pytest.raises(IndexError):
+        ds[lay.n]
+
+
+def test_replica_defaults_bounds_mesh(tmp_path):
+    lay = make_replica(tmp_path, scene="office2")
+    with pytest.raises(DataError, match="1200x680"):  # the 32x24 fixture does not match the Replica camera
+        open_folder(lay.root)
+    ds = open_folder(lay.root, DataConfig(intrinsics=[16.0, 16.0, 15.5, 11.5]))
+    assert ds.intrinsics.fx == 16.0 and ds.intrinsics.width == W
+    np.testing.assert_array_equal(ds.bounds, [[-4.0, 3.6], [-3.4, 5.9], [-1.8, 2.1]])
+    assert ds.gt_mesh == tmp_path / "office2_mesh.ply"
+    other = make_replica(tmp_path / "x", scene="myscan", mesh=False)
+    ds2 = open_folder(other.root, DataConfig(intrinsics=[16.0, 16.0, 15.5, 11.5]))
+    assert ds2.bounds is None and ds2.gt_mesh is None
+
+
+def test_replica_true_and_faithful_intrinsics(tmp_path, monkeypatch):
+    from inrslam.data import replica
+
+    lay = make_replica(tmp_path)
+    # pretend the images were 1200x680 so the default camera applies
+    monkeypatch.setattr("inrslam.data.base.image_size", lambda p: (1200, 680))
+    ds = replica.ReplicaDataset(lay.root)
+    assert (ds.intrinsics.fx, ds.intrinsics.fy, ds.intrinsics.cx, ds.intrinsics.cy) == (600, 600, 599.5, 339.5)
+    ds = replica.ReplicaDataset(lay.root, DataConfig(faithful_intrinsics=True))
+    assert (ds.intrinsics.cx, ds.intrinsics.cy) == (599.0, 339.0)
+
+
+def test_neuralrgbd_opengl_converted_and_nan_invalid(tmp_path, monkeypatch):
+    lay = make_neuralrgbd(tmp_path, n=3, nan_frame=1)
+    ds = open_folder(lay.root, DataConfig(intrinsics=[20.0, 20.0, 16.0, 12.0]))
+    T = ds[0].c2w
+    # the file holds T_cv @ diag(1,-1,-1,1); the reader must undo it: camera y points down, z forward
+    np.testing.assert_allclose(T, lay.poses[0], atol=1e-9)
+    assert not ds[1].pose_valid and np.all(np.isnan(ds[1].c2w))
+    np.testing.assert_array_equal(ds.bounds, [[-2.4, 2.0], [-0.6, 2.9], [-1.8, 3.1]])
+    # the unfiltered depth folder is selectable and differs by one raw unit (1 mm)
+    ds_raw = open_folder(lay.root, DataConfig(intrinsics=[20.0, 20.0, 16.0, 12.0], neuralrgbd_depth_dir="depth"))
+    assert ds_raw[0].depth[5, 5] - ds[0].depth[5, 5] == pytest.approx(0.001, abs=1e-6)
+
+
+def test_neuralrgbd_default_intrinsics(tmp_path, monkeypatch):
+    from inrslam.data.neuralrgbd import NeuralRGBDDataset
+
+    lay = make_neuralrgbd(tmp_path)
+    monkeypatch.setattr("inrslam.data.base.image_size", lambda p: (640, 480))
+    ds = NeuralRGBDDataset(lay.root)
+    assert (ds.intrinsics.fx, ds.intrinsics.cx, ds.intrinsics.cy) == (FOCAL, 320.0, 240.0)
+    assert NeuralRGBDDataset(lay.root, DataConfig(faithful_intrinsics=True)).intrinsics.fx == 554.0
+
+
+def test_neuralrgbd_natural_sort(tmp_path):
+    lay = make_neuralrgbd(tmp_path, n=12, nan_frame=None)
+    ds = open_folder(lay.root, DataConfig(intrinsics=[20.0, 20.0, 16.0, 12.0]))
+    assert [ds._rgb[k].name for k in (1, 2, 10)] == ["img1.png", "img2.png", "img10.png"]
+    np.testing.assert_allclose(ds[10].c2w, lay.poses[10], atol=1e-9)
+
+
+def test_scannet_resizes_colour_and_reads_intrinsic_depth(tmp_path):
+    lay = make_scannet(tmp_path)
+    ds = open_folder(lay.root)
+    assert (ds.intrinsics.fx, ds.intrinsics.fy, ds.intrinsics.cx, ds.intrinsics.cy) == (28.5, 29.5, 15.5, 11.5)
+    assert ds[0].rgb.shape == (H, W, 3)  # colour was 64 x 48 on disk
+    assert not ds[2].pose_valid and np.all(np.isnan(ds[2].c2w))  # -inf in the file
+
+
+def test_scannet_numeric_sort(tmp_path):
+    lay = make_scannet(tmp_path, n=11, inf_frame=None)
+    ds = open_folder(lay.root)
+    assert [p.name for p in ds._rgb[:3]] == ["0.jpg", "1.jpg", "2.jpg"] and ds._rgb[10].name == "10.jpg"
+    np.testing.assert_allclose(ds[10].c2w, lay.poses[10], atol=1e-9)
+
+
+def test_tum_association(tmp_path):
+    lay = make_tum(tmp_path, n=4)
+    K = [20.0, 20.0, 16.0, 12.0]
+    ds = open_folder(lay.root, DataConfig(intrinsics=K))
+    assert len(ds) == 4 and ds.dropped_unpaired == 1  # the extra colour frame has no depth
+    assert [p.name for p in ds._depth] == [f"{t + 0.005:.6f}.png" for t in lay.timestamps]
+    # the ground truth is 3 ms off the colour stamps: matched; the last frame has none within 0.02 s
+    assert list(ds.pose_valid) == [True, True, True, False]
+    # a tighter pose tolerance invalidates them
+    assert not open_folder(lay.root, DataConfig(intrinsics=K, tum_max_dt_pose=0.001)).pose_valid.any()
+    # depth is 5 ms after colour: a 1 ms tolerance pairs nothing -> error naming the lists
+    with pytest.raises(DataError, match="rgb.txt"):
+        open_folder(lay.root, DataConfig(intrinsics=K, tum_max_dt_depth=0.001))
+
+
+def test_tum_default_intrinsics_by_sequence(tmp_path, monkeypatch):
+    monkeypatch.setattr("inrslam.data.base.image_size", lambda p: (640, 480))
+    fr1 = open_folder(make_tum(tmp_path / "a").root).intrinsics
+    assert (fr1.fx, fr1.fy, fr1.cx, fr1.cy, fr1.width) == (517.3, 516.5, 318.6, 255.3, 640)
+    fr3 = open_folder(make_tum(tmp_path / "b", scene="rgbd_dataset_freiburg3_office").root).intrinsics
+    assert (fr3.fx, fr3.fy) == (535.4, 539.2)
+
+
+def test_7scenes_subfolder_intrinsics_and_65535(tmp_path):
+    lay = make_7scenes(tmp_path, numbers=[0, 1, 116])
+    ds = open_folder(lay.root)
+    assert ds.frame_dir.name == "seq-01"
+    assert (ds.intrinsics.fx, ds.intrinsics.cx, ds.intrinsics.cy) == (30.5, 16.25, 12.5)
+    f = ds[2]
+    assert f.depth[2, 3] == 0.0  # 65535 = no measurement
+    assert f.timestamp == pytest.approx(116 / 30) and f.meta["frame_id"] == 116
+
+
+def test_7scenes_several_sequences_need_choice(tmp_path):
+    lay = make_7scenes(tmp_path, sub="seq-01")
+    make_7scenes(tmp_path, n=2, sub="seq-02")
+    with pytest.raises(DataError, match="seq-01, seq-02"):
+        open_folder(lay.root)
+    assert len(open_folder(lay.root, DataConfig(sequence="seq-02"))) == 2
+
+
+def test_frames_are_read_lazily(tmp_path):
+    """Opening reads no image; a file removed after opening fails only when its frame is read."""
+    lay = make_7scenes(tmp_path, n=3)
+    ds = open_folder(lay.root)
+    victim = lay.root / "seq-01" / "frame-000002.color.png"
+    victim.unlink()
+    assert ds[0].rgb.shape == (H, W, 3) and ds[1].depth.shape == (H, W)
+    with pytest.raises(DataError, match="frame-000002.color.png"):
+        ds[2]
