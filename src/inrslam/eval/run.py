@@ -1,0 +1,415 @@
+"""Evaluate run directories and plain files: the thin I/O layer over `trajectory`, `mesh` and `image`.
+
+`evaluate_run(run_dir)` recomputes every "from results" metric of a run directory (layout: docs/design.md) and
+merges it into the run's `metrics.json` (process metrics written by the SLAM run are kept). The stable keys and
+their units are documented in docs/metrics.md; `RESULT_KEYS` lists the keys this module owns.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any, Mapping, Optional, Union
+
+import numpy as np
+import trimesh
+from rich.table import Table
+
+from inrslam.data.frame import Intrinsics
+from inrslam.errors import DataError
+from inrslam.eval.config import Alignment, EvalConfig
+from inrslam.eval.mesh import cull_mesh, mesh_metrics
+from inrslam.eval.trajectory import associate, ate, rpe
+from inrslam.io.atomic import atomic_path, write_json
+from inrslam.io.trajectory import read_tum
+
+PathLike = Union[str, os.PathLike]
+
+#: keys `evaluate_run` (re)computes; always present in its output (None when not computable).
+RESULT_KEYS = (
+    "ate_rmse_m",
+    "ate_mean_m",
+    "ate_median_m",
+    "ate_max_m",
+    "rpe_trans_m",
+    "rpe_rot_deg",
+    "ate_keyframes_rmse_m",
+    "acc_m",
+    "comp_m",
+    "comp_ratio",
+    "frames",
+)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# small readers (thin wrappers: formats live in inrslam.io; these only add run-directory conventions)
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise DataError(f"{path}: invalid JSON ({e})") from None
+
+
+def load_mesh(path: PathLike) -> trimesh.Trimesh:
+    """Read a triangle mesh (PLY/OBJ/...) with trimesh, without merging or reordering vertices."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: mesh file not found")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types for unreadable files
+        raise DataError(f"{path}: cannot read mesh ({e})") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise DataError(f"{path}: expected a triangle mesh, got {type(mesh).__name__}")
+    return mesh
+
+
+def intrinsics_from_dict(d: Mapping[str, Any], source: str = "intrinsics") -> Intrinsics:
+    """`Intrinsics` from a mapping with keys fx, fy, cx, cy (pixels), width, height."""
+    if isinstance(d, Intrinsics):
+        return d
+    keys = ("fx", "fy", "cx", "cy", "width", "height")
+    missing = [k for k in keys if k not in d]
+    if missing:
+        raise DataError(f"{source}: missing intrinsics keys {missing} (expected {list(keys)})")
+    return Intrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
+
+
+def _f(x: Any) -> Optional[float]:
+    """float or None for NaN / None (JSON-friendly)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# pure assembly of the stable keys
+
+
+def trajectory_metrics(
+    est_c2w: np.ndarray,
+    gt_c2w: np.ndarray,
+    keyframe_rows: Optional[np.ndarray] = None,
+    align: Alignment | str = Alignment.SE3,
+    rpe_delta: int = 1,
+) -> dict:
+    """Stable trajectory keys from associated (N, 4, 4) estimate / GT arrays (GT rows may be NaN = no GT).
+
+    Keyframe ATE (`ate_keyframes_rmse_m`) restricts both arrays to `keyframe_rows` and aligns that subset on its
+    own. Returns ate_rmse_m, ate_mean_m, ate_median_m, ate_std_m, ate_min_m, ate_max_m, ate_n_used, ate_n_excluded,
+    rpe_trans_m, rpe_rot_deg, rpe_n_pairs, ate_keyframes_rmse_m, ate_keyframes_n_used.
+    """
+    a = ate(est_c2w, gt_c2w, align=align)
+    r = rpe(est_c2w, gt_c2w, delta=rpe_delta)
+    out = {
+        "ate_rmse_m": _f(a["rmse"]),
+        "ate_mean_m": _f(a["mean"]),
+        "ate_median_m": _f(a["median"]),
+        "ate_std_m": _f(a["std"]),
+        "ate_min_m": _f(a["min"]),
+        "ate_max_m": _f(a["max"]),
+        "ate_n_used": a["n_used"],
+        "ate_n_excluded": a["n_excluded"],
+        "ate_scale": _f(a["alignment"]["s"]),
+        "rpe_trans_m": _f(r["trans_rmse"]),
+        "rpe_rot_deg": _f(r["rot_rmse"]),
+        "rpe_n_pairs": r["n_pairs"],
+        "ate_keyframes_rmse_m": None,
+        "ate_keyframes_n_used": 0,
+    }
+    if keyframe_rows is not None and len(keyframe_rows) > 0:
+        rows = np.asarray(keyframe_rows, dtype=np.int64)
+        k = ate(np.asarray(est_c2w)[rows], np.asarray(gt_c2w)[rows], align=align)
+        out["ate_keyframes_rmse_m"] = _f(k["rmse"])
+        out["ate_keyframes_n_used"] = k["n_used"]
+    return out
+
+
+def _associated_gt(ts_est: np.ndarray, ts_gt: np.ndarray, gt: np.ndarray, max_diff: float) -> np.ndarray:
+    """(N, 4, 4) GT pose of each estimated frame (NaN where no GT timestamp is within max_diff)."""
+    ia, ib = associate(ts_est, ts_gt, max_diff)
+    full = np.full((len(ts_est), 4, 4), np.nan)
+    full[ia] = gt[ib]
+    return full
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# run directories
+
+
+def _keyframe_rows(run_dir: Path, run_info: dict, ts_est: np.ndarray, max_diff: float, notes: list) -> Optional[np.ndarray]:
+    """Rows of trajectory.txt that are keyframes (frame indices -> rows via run_info timestamps)."""
+    kf = run_info.get("keyframes")
+    if kf is None and (run_dir / "keyframes.json").is_file():
+        kf = _read_json(run_dir / "keyframes.json")
+        if isinstance(kf, dict):
+            kf = kf.get("keyframes")
+    if kf is None:
+        notes.append("ate_keyframes_rmse_m: no keyframe list (run_info.json 'keyframes' or keyframes.json)")
+        return None
+    kf = np.asarray(kf, dtype=np.int64).ravel()
+    stamps = run_info.get("timestamps")
+    if stamps is not None:
+        stamps = np.asarray(stamps, dtype=np.float64)
+        kf = kf[(kf >= 0) & (kf < len(stamps))]
+        ia, ib = associate(stamps[kf], ts_est, max_diff)
+        return ib
+    notes.append("keyframes: run_info.json has no 'timestamps'; assumed trajectory row == frame index")
+    return kf[(kf >= 0) & (kf < len(ts_est))]
+
+
+def _resolve(run_dir: Path, p: Optional[str]) -> Optional[Path]:
+    if not p:
+        return None
+    path = Path(p).expanduser()
+    return path if path.is_absolute() else (run_dir / path)
+
+
+def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict:
+    """(Re)compute all result metrics of a run directory and merge them into its `metrics.json`.
+
+    Reads `trajectory.txt`, `trajectory_gt.txt` (TUM; associated by timestamp within `cfg.max_time_diff`; estimated
+    frames without GT are excluded from ATE and counted), `run_info.json` (`intrinsics`, `gt_mesh`, `keyframes`,
+    `timestamps`), `keyframes.json` (fallback), `mesh.ply` and the GT mesh. The reconstructed mesh is culled with
+    the ground-truth cameras (every `cfg.cull_every`-th row of `trajectory_gt.txt`, frustum + occlusion); the GT
+    mesh is used as is. Existing keys of `metrics.json` (process metrics: timings, model size, PSNR, ...) are kept;
+    the keys in `RESULT_KEYS` are always written (None when not computable, with the reason in `eval_notes`),
+    together with `protocol` (this evaluation's settings) and `mesh_eval` (culling / ICP details).
+
+    Args:
+        run_dir: the run directory.
+        cfg: protocol: an `EvalConfig`, or anything `EvalConfig.from_any` accepts (the run config's `eval` section,
+            a dict); missing fields take the defaults (the benchmark protocol with ICP off).
+        write: write the merged dict back to `metrics.json` (atomically).
+    Returns:
+        the merged metrics dict.
+    """
+    cfg = EvalConfig.from_any(cfg)
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise DataError(f"{run_dir}: run directory not found")
+    notes: list[str] = []
+    info_path = run_dir / "run_info.json"
+    run_info = _read_json(info_path) if info_path.is_file() else {}
+    if not info_path.is_file():
+        notes.append("run_info.json missing: no keyframes, intrinsics or GT mesh")
+    metrics_path = run_dir / "metrics.json"
+    existing = _read_json(metrics_path) if metrics_path.is_file() else {}
+    if not isinstance(existing, dict):
+        raise DataError(f"{metrics_path}: expected a JSON object")
+
+    res: dict[str, Any] = {k: None for k in RESULT_KEYS}
+
+    # --- trajectory
+    est_path, gt_path = run_dir / "trajectory.txt", run_dir / "trajectory_gt.txt"
+    gt_cams = None
+    if gt_path.is_file():
+        ts_gt, gt = read_tum(gt_path)
+        gt_cams = gt
+    if est_path.is_file():
+        ts_est, est = read_tum(est_path)
+        res["frames"] = int(len(est))
+        if gt_cams is not None:
+            gt_full = _associated_gt(ts_est, ts_gt, gt, cfg.max_time_diff)
+            rows = _keyframe_rows(run_dir, run_info, ts_est, cfg.max_time_diff, notes)
+            res.update(trajectory_metrics(est, gt_full, rows, cfg.align, cfg.rpe_delta))
+            if res["ate_n_used"] == 0:
+                notes.append(f"ATE: no estimated timestamp within {cfg.max_time_diff} s of a GT timestamp")
+        else:
+            notes.append("trajectory_gt.txt missing: no ATE/RPE")
+    else:
+        notes.append("trajectory.txt missing: no ATE/RPE")
+
+    # --- mesh
+    rec_path = run_dir / "mesh.ply"
+    gt_mesh_path = _resolve(run_dir, run_info.get("gt_mesh"))
+    mesh_eval: dict[str, Any] = {}
+    if not cfg.mesh_metrics:
+        notes.append("mesh metrics disabled (mesh_metrics: false)")
+    elif not rec_path.is_file():
+        notes.append("mesh.ply missing: no Acc/Comp")
+    elif gt_mesh_path is None or not gt_mesh_path.is_file():
+        notes.append(f"GT mesh {'not given' if gt_mesh_path is None else f'not found at {gt_mesh_path}'}: no Acc/Comp")
+    elif gt_cams is None or "intrinsics" not in run_info:
+        notes.append("no GT cameras (trajectory_gt.txt) or intrinsics (run_info.json): cannot cull, no Acc/Comp")
+    else:
+        mres = _mesh_eval(load_mesh(rec_path), load_mesh(gt_mesh_path), gt_cams,
+                          intrinsics_from_dict(run_info["intrinsics"], f"{info_path}: intrinsics"), cfg)
+        mesh_eval = mres.pop("mesh_eval")
+        mesh_eval["gt_mesh"] = str(gt_mesh_path)
+        if mres.get("error"):
+            notes.append(mres.pop("error"))
+        res.update(mres)
+
+    out = dict(existing)
+    out.update(res)
+    out["protocol"] = cfg.protocol()
+    out["mesh_eval"] = mesh_eval
+    out["eval_notes"] = notes
+    if write:
+        write_json(metrics_path, out)
+    return out
+
+
+def _mesh_eval(rec: trimesh.Trimesh, gt: trimesh.Trimesh, cams: np.ndarray, intr: Intrinsics, cfg: EvalConfig,
+               culled_out: Optional[PathLike] = None) -> dict:
+    culled = cull_mesh(rec, cams, intr, every=cfg.cull_every, eps=cfg.cull_eps, occlusion=cfg.cull_occlusion)
+    if culled_out is not None:
+        with atomic_path(culled_out) as tmp:
+            culled.export(tmp)
+    details = {
+        "rec_faces": int(len(rec.faces)),
+        "culled_faces": int(len(culled.faces)),
+        "cameras_used": int(len(cams[:: cfg.cull_every])),
+        "icp_transform": None,
+        "icp_info": None,
+    }
+    if len(culled.faces) == 0:
+        return {"acc_m": None, "comp_m": None, "comp_ratio": None, "mesh_eval": details,
+                "error": "culled reconstruction is empty: no Acc/Comp"}
+    m = mesh_metrics(culled, gt, n_samples=cfg.n_samples, threshold=cfg.threshold, icp=cfg.icp, seed=cfg.seed)
+    details["icp_transform"] = m["icp_transform"]
+    details["icp_info"] = m["icp_info"]
+    return {"acc_m": m["acc_m"], "comp_m": m["comp_m"], "comp_ratio": m["comp_ratio"], "mesh_eval": details}
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# anyone's files
+
+
+def eval_trajectory_files(
+    est_path: PathLike, gt_path: PathLike, align: Alignment | str = "se3", max_diff: float = 0.02, rpe_delta: int = 1
+) -> dict:
+    """ATE / RPE of two TUM trajectory files (camera-to-world), associated by timestamp (TUM rule, `max_diff` s).
+
+    Only associated frames are evaluated (RPE pairs are consecutive associated frames, step `rpe_delta`).
+    Returns the trajectory keys of `trajectory_metrics` plus n_est, n_gt, n_matched and `protocol`.
+    """
+    ts_e, est = read_tum(est_path)
+    ts_g, gt = read_tum(gt_path)
+    ia, ib = associate(ts_e, ts_g, max_diff)
+    if ia.size == 0:
+        raise DataError(f"{est_path} vs {gt_path}: no timestamps associated within {max_diff} s")
+    out = trajectory_metrics(est[ia], gt[ib], None, align, rpe_delta)
+    del out["ate_keyframes_rmse_m"], out["ate_keyframes_n_used"]
+    out.update(n_est=int(len(est)), n_gt=int(len(gt)), n_matched=int(ia.size))
+    out["protocol"] = {
+        "alignment": Alignment(align).value,
+        "association": {"method": "timestamp", "max_diff_s": max_diff},
+        "rpe_delta": rpe_delta,
+    }
+    return out
+
+
+def eval_mesh_files(
+    rec_path: PathLike,
+    gt_path: PathLike,
+    cameras_path: Optional[PathLike] = None,
+    intrinsics: Optional[Union[Intrinsics, Mapping[str, Any]]] = None,
+    every: int = 2,
+    eps: float = 0.03,
+    occlusion: bool = True,
+    n_samples: int = 200_000,
+    threshold: float = 0.05,
+    icp: bool = False,
+    seed: int = 0,
+    culled_out: Optional[PathLike] = None,
+) -> dict:
+    """Acc / Comp / Comp% of a reconstructed mesh file against a GT mesh file.
+
+    If `cameras_path` (TUM file of ground-truth camera-to-world poses, OpenCV axes) is given, the reconstruction is
+    culled first (frustum + occlusion, `intrinsics` required) and optionally saved to `culled_out`; without it the
+    reconstruction is evaluated unculled (say so when reporting). Returns acc_m, comp_m, comp_ratio, mesh_eval,
+    protocol.
+    """
+    cfg = EvalConfig(cull_every=every, cull_eps=eps, cull_occlusion=occlusion, n_samples=n_samples,
+                     threshold=threshold, icp=icp, seed=seed)
+    rec, gt = load_mesh(rec_path), load_mesh(gt_path)
+    protocol = cfg.protocol()
+    del protocol["alignment"], protocol["association"], protocol["rpe_delta"]
+    if cameras_path is None:
+        m = mesh_metrics(rec, gt, n_samples=n_samples, threshold=threshold, icp=icp, seed=seed)
+        protocol["culling"] = None
+        details = {"rec_faces": int(len(rec.faces)), "culled_faces": None, "cameras_used": 0,
+                   "icp_transform": m["icp_transform"], "icp_info": m["icp_info"]}
+        out = {"acc_m": m["acc_m"], "comp_m": m["comp_m"], "comp_ratio": m["comp_ratio"], "mesh_eval": details}
+    else:
+        if intrinsics is None:
+            raise DataError(f"{cameras_path}: culling with cameras needs intrinsics (fx, fy, cx, cy, width, height)")
+        _, cams = read_tum(cameras_path)
+        out = _mesh_eval(rec, gt, cams, intrinsics_from_dict(intrinsics), cfg, culled_out)
+        if out.get("error"):
+            raise DataError(f"{rec_path}: {out['error']} (cameras {cameras_path})")
+    out["protocol"] = protocol
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# display
+
+# key -> (label, unit shown, factor applied to the stored value)
+_DISPLAY = {
+    "ate_rmse_m": ("ATE RMSE", "cm", 100.0),
+    "ate_mean_m": ("ATE mean", "cm", 100.0),
+    "ate_median_m": ("ATE median", "cm", 100.0),
+    "ate_max_m": ("ATE max", "cm", 100.0),
+    "ate_keyframes_rmse_m": ("ATE RMSE (keyframes)", "cm", 100.0),
+    "rpe_trans_m": ("RPE trans. RMSE", "cm", 100.0),
+    "rpe_rot_deg": ("RPE rot. RMSE", "deg", 1.0),
+    "acc_m": ("Accuracy", "cm", 100.0),
+    "comp_m": ("Completion", "cm", 100.0),
+    "comp_ratio": ("Completion ratio", "%", 100.0),
+    "psnr_db": ("PSNR (held-out)", "dB", 1.0),
+    "ssim": ("SSIM (held-out)", "", 1.0),
+    "depth_l1_m": ("Depth L1 (held-out)", "cm", 100.0),
+    "psnr_process_db": ("PSNR (process)", "dB", 1.0),
+    "depth_l1_process_m": ("Depth L1 (process)", "cm", 100.0),
+    "track_ms_per_frame": ("Tracking", "ms/frame", 1.0),
+    "map_ms_per_call": ("Mapping", "ms/call", 1.0),
+    "model_size_mb": ("Model size", "MiB", 1.0),
+    "peak_memory_mb": ("Peak memory", "MiB", 1.0),
+    "frames": ("Frames", "", 1.0),
+}
+
+
+def _unit_for(key: str) -> tuple[str, str, float]:
+    if key in _DISPLAY:
+        return _DISPLAY[key]
+    for suffix, unit, fac in (("_m", "cm", 100.0), ("_deg", "deg", 1.0), ("_db", "dB", 1.0), ("_mb", "MiB", 1.0),
+                              ("_ms", "ms", 1.0), ("_s", "s", 1.0), ("_ratio", "%", 100.0)):
+        if key.endswith(suffix):
+            return key, unit, fac
+    return key, "", 1.0
+
+
+def format_table(metrics: Mapping[str, Any], title: Optional[str] = "Metrics") -> Table:
+    """A rich table (metric, value, unit) of the scalar entries of a metrics dict; lengths shown in cm.
+
+    Known keys come first in a fixed order, then other numeric keys; dicts / lists are skipped; None -> "—".
+    """
+    table = Table(title=title)
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    table.add_column("unit")
+    keys = [k for k in _DISPLAY if k in metrics] + sorted(k for k in metrics if k not in _DISPLAY)
+    for key in keys:
+        val = metrics[key]
+        if isinstance(val, (dict, list, tuple, str)):
+            continue
+        label, unit, fac = _unit_for(key)
+        if val is None:
+            txt = "—"
+        elif isinstance(val, bool):
+            txt = str(val)
+        elif isinstance(val, (int, np.integer)) and fac == 1.0:
+            txt = str(int(val))
+        else:
+            v = float(val) * fac
+            txt = f"{v:.4f}" if abs(v) < 10 else f"{v:.2f}"
+        table.add_row(label, txt, unit)
+    return table

@@ -1,0 +1,292 @@
+"""Trajectory metrics: Umeyama/Horn alignment, timestamp association, ATE and RPE (pure numpy, no I/O).
+
+Poses are camera-to-world (N, 4, 4) float64, metres, OpenCV axes (the axes do not matter for ATE/RPE as long as
+both trajectories use the same ones). Frames whose pose is not finite (NaN/inf) are excluded and counted.
+
+References:
+    Sturm et al., "A Benchmark for the Evaluation of RGB-D SLAM Systems", IROS 2012 (ATE, RPE, association).
+    Horn, "Closed-form solution of absolute orientation using unit quaternions", JOSA A 1987.
+    Umeyama, "Least-squares estimation of transformation parameters between two point patterns", TPAMI 1991.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from inrslam.eval.config import Alignment
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# alignment
+
+
+def align_umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares similarity (or rigid) transform mapping `src` onto `dst`: dst_i ≈ s R src_i + t.
+
+    Umeyama (1991), reflection-corrected:
+        μx, μy = means;  Σ = (1/N) Σ_i (y_i − μy)(x_i − μx)ᵀ = U D Vᵀ (SVD)
+        S = diag(1, 1, sign(det U · det V));   R = U S Vᵀ
+        s = tr(D S) / σx²  with σx² = (1/N) Σ_i |x_i − μx|²   (s = 1 when `with_scale` is False)
+        t = μy − s R μx
+    Without scale this is Horn's (1987) closed-form absolute orientation.
+
+    Args:
+        src: (N, 3) points (e.g. estimated camera centres), metres.
+        dst: (N, 3) corresponding points (e.g. ground-truth camera centres), metres.
+        with_scale: also estimate the scale s (Sim(3)); otherwise s = 1 (SE(3)).
+    Returns:
+        R (3, 3) rotation (det +1), t (3,) metres, s scalar.
+    Raises:
+        ValueError for mismatched shapes, no points, or a zero-spread `src` with scale requested.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
+        raise ValueError(f"align_umeyama: expected two (N, 3) arrays, got {src.shape} and {dst.shape}")
+    n = src.shape[0]
+    if n == 0:
+        raise ValueError("align_umeyama: no points to align")
+    mu_x, mu_y = src.mean(0), dst.mean(0)
+    xc, yc = src - mu_x, dst - mu_y
+    cov = yc.T @ xc / n
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    if with_scale:
+        var_x = (xc * xc).sum() / n
+        if var_x <= 0:
+            raise ValueError("align_umeyama: source points have zero spread, scale is undefined")
+        s = float(np.trace(np.diag(D) @ S) / var_x)
+    else:
+        s = 1.0
+    t = mu_y - s * R @ mu_x
+    return R, t, s
+
+
+def sim3_matrix(R: np.ndarray, t: np.ndarray, s: float = 1.0) -> np.ndarray:
+    """(4, 4) matrix [[s R, t], [0, 1]] acting on homogeneous points."""
+    T = np.eye(4)
+    T[:3, :3] = s * np.asarray(R)
+    T[:3, 3] = t
+    return T
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# association
+
+
+def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_diff: float = 0.02, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one nearest-timestamp association (the TUM benchmark's `associate.py` rule).
+
+    All pairs (i, j) with |ts_a[i] − (ts_b[j] + offset)| < max_diff are candidates; they are accepted greedily in
+    order of increasing time difference, each index used at most once. Runs in O((N + M) log(N + M) + P) for P
+    candidate pairs (the original benchmark code was O(N²) per call, spec §13.20).
+
+    Args:
+        ts_a: (N,) seconds.  ts_b: (M,) seconds.
+        max_diff: seconds, strict upper bound on |Δt|.
+        offset: seconds added to ts_b.
+    Returns:
+        (K,) indices into a and (K,) indices into b, sorted by index into a.
+    """
+    a = np.asarray(ts_a, dtype=np.float64).ravel()
+    b = np.asarray(ts_b, dtype=np.float64).ravel() + offset
+    if a.size == 0 or b.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    order_b = np.argsort(b, kind="stable")
+    bs = b[order_b]
+    lo = np.searchsorted(bs, a - max_diff, side="left")
+    hi = np.searchsorted(bs, a + max_diff, side="right")
+    counts = hi - lo
+    ia = np.repeat(np.arange(a.size), counts)
+    starts = np.repeat(lo - np.cumsum(counts) + counts, counts)  # position of first candidate of each a
+    jb_sorted = np.arange(ia.size) + starts
+    diff = np.abs(a[ia] - bs[jb_sorted])
+    keep = diff < max_diff
+    ia, jb_sorted, diff = ia[keep], jb_sorted[keep], diff[keep]
+    order = np.lexsort((jb_sorted, ia, diff))  # by diff, ties broken by index (deterministic)
+    used_a = np.zeros(a.size, dtype=bool)
+    used_b = np.zeros(b.size, dtype=bool)
+    out_a, out_b = [], []
+    for k in order:
+        i, j = ia[k], jb_sorted[k]
+        if used_a[i] or used_b[j]:
+            continue
+        used_a[i] = used_b[j] = True
+        out_a.append(i)
+        out_b.append(order_b[j])
+    out_a = np.asarray(out_a, dtype=np.int64)
+    out_b = np.asarray(out_b, dtype=np.int64)
+    srt = np.argsort(out_a, kind="stable")
+    return out_a[srt], out_b[srt]
+
+
+def associate_indices(idx_a: Sequence[int], idx_b: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Associate by frame index: positions (ia, ib) with idx_a[ia] == idx_b[ib], sorted by frame index.
+
+    Duplicate frame indices keep their first occurrence.
+    """
+    a = np.asarray(idx_a, dtype=np.int64).ravel()
+    b = np.asarray(idx_b, dtype=np.int64).ravel()
+    _, ia, ib = np.intersect1d(a, b, assume_unique=False, return_indices=True)
+    return ia.astype(np.int64), ib.astype(np.int64)
+
+
+def select_frames(indices: Sequence[int], *trajectories: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Restrict trajectories (each (N, 4, 4) or (N, ...)) to the rows `indices` (e.g. keyframe indices).
+
+    Raises ValueError for an index outside [0, N).
+    """
+    idx = np.asarray(indices, dtype=np.int64).ravel()
+    out = []
+    for traj in trajectories:
+        traj = np.asarray(traj)
+        if idx.size and (idx.min() < 0 or idx.max() >= traj.shape[0]):
+            raise ValueError(f"select_frames: index out of range [0, {traj.shape[0]}): min {idx.min()}, max {idx.max()}")
+        out.append(traj[idx])
+    return tuple(out)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# metrics
+
+
+def _stats(e: np.ndarray) -> dict:
+    if e.size == 0:
+        nan = float("nan")
+        return {"rmse": nan, "mean": nan, "median": nan, "std": nan, "min": nan, "max": nan}
+    return {
+        "rmse": float(np.sqrt(np.mean(e * e))),
+        "mean": float(np.mean(e)),
+        "median": float(np.median(e)),
+        "std": float(np.std(e)),
+        "min": float(np.min(e)),
+        "max": float(np.max(e)),
+    }
+
+
+def _check_poses(name: str, T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise ValueError(f"{name}: expected (N, 4, 4) poses, got {T.shape}")
+    return T
+
+
+def _finite_rows(T: np.ndarray) -> np.ndarray:
+    return np.isfinite(T.reshape(T.shape[0], -1)).all(1)
+
+
+def ate(est_c2w: np.ndarray, gt_c2w: np.ndarray, align: Alignment | str = "se3") -> dict:
+    """Absolute trajectory error (translational), after aligning the estimate to ground truth.
+
+    With p_i, q_i the estimated / ground-truth camera centres of the used frames and (s, R, t) from
+    `align_umeyama(p, q)` (SE(3): s = 1; Sim(3): s free; none: identity):
+        e_i = | s R p_i + t − q_i |,      ATE_RMSE = sqrt( (1/N) Σ_i e_i² )     (Sturm et al. 2012)
+    Only translations enter the error (as the TUM benchmark and the paper).
+
+    Args:
+        est_c2w: (N, 4, 4) estimated camera-to-world, metres.
+        gt_c2w: (N, 4, 4) ground-truth camera-to-world of the same frames, metres; rows with any non-finite
+            entry (missing GT) are excluded and counted, as are non-finite estimates.
+        align: "se3" | "sim3" | "none" (or `Alignment`).
+    Returns:
+        dict with
+            rmse, mean, median, std, min, max: metres (NaN when no frame is usable);
+            n_used, n_excluded: frame counts (n_used + n_excluded = N);
+            errors: (n_used,) per-frame errors, metres;  used: (N,) bool mask of the used frames;
+            alignment: {"type", "R" (3,3), "t" (3,), "s", "T" (4,4) = [[sR, t], [0, 1]]}.
+    """
+    align = Alignment(align)
+    est = _check_poses("ate est_c2w", est_c2w)
+    gt = _check_poses("ate gt_c2w", gt_c2w)
+    if est.shape[0] != gt.shape[0]:
+        raise ValueError(f"ate: {est.shape[0]} estimated poses vs {gt.shape[0]} ground-truth poses (associate first)")
+    used = _finite_rows(est) & _finite_rows(gt)
+    p, q = est[used, :3, 3], gt[used, :3, 3]
+    R, t, s = np.eye(3), np.zeros(3), 1.0
+    if align is not Alignment.NONE and p.shape[0] > 0:
+        with_scale = align is Alignment.SIM3 and p.shape[0] > 1
+        R, t, s = align_umeyama(p, q, with_scale=with_scale)
+    errors = np.linalg.norm((s * (R @ p.T)).T + t - q, axis=1)
+    out = _stats(errors)
+    out.update(
+        n_used=int(used.sum()),
+        n_excluded=int((~used).sum()),
+        errors=errors,
+        used=used,
+        alignment={"type": align.value, "R": R, "t": t, "s": float(s), "T": sim3_matrix(R, t, s)},
+    )
+    return out
+
+
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation -> (...,) angle in degrees, θ = atan2(|vee(R − Rᵀ)| / 2, (tr R − 1) / 2).
+
+    The atan2 form is accurate near 0 and π (arccos of the trace loses half the digits near 0).
+    """
+    R = np.asarray(R, dtype=np.float64)
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    sin = 0.5 * np.linalg.norm(w, axis=-1)
+    cos = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    return np.degrees(np.arctan2(sin, cos))
+
+
+def _inv(T: np.ndarray) -> np.ndarray:
+    Ti = np.zeros_like(T)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    Ti[..., :3, :3] = Rt
+    Ti[..., :3, 3] = -(Rt @ T[..., :3, 3:])[..., 0]
+    Ti[..., 3, 3] = 1.0
+    return Ti
+
+
+def rpe(est_c2w: np.ndarray, gt_c2w: np.ndarray, delta: int = 1) -> dict:
+    """Relative pose error over a fixed frame step (Sturm et al. 2012; same convention as evo).
+
+    For every pair (i, j = i + delta) whose four poses are finite:
+        E_ij = (Q_i⁻¹ Q_j)⁻¹ (P_i⁻¹ P_j)       (Q ground truth, P estimate, camera-to-world)
+        e_trans = |trans(E_ij)| (m),   e_rot = angle(rot(E_ij)) (deg)
+    RMSE over pairs. Every pair (i, i + delta) is used (overlapping, as the TUM tool `evaluate_rpe.py` and evo with
+    `all_pairs=True`; evo's default strides by delta, which is identical for delta = 1). RPE is invariant to any rigid transform of either trajectory, so no alignment is used.
+
+    Args:
+        est_c2w, gt_c2w: (N, 4, 4) camera-to-world of the same frames, metres.
+        delta: frame step (>= 1), in rows of the arrays.
+    Returns:
+        dict with trans_rmse, trans_mean, trans_median, trans_max (m); rot_rmse, rot_mean, rot_median, rot_max (deg);
+        n_pairs, n_excluded (pairs with a non-finite pose); trans_errors, rot_errors (n_pairs,); pairs (n_pairs, 2).
+    """
+    if int(delta) < 1:
+        raise ValueError(f"rpe: delta must be >= 1, got {delta}")
+    delta = int(delta)
+    est = _check_poses("rpe est_c2w", est_c2w)
+    gt = _check_poses("rpe gt_c2w", gt_c2w)
+    if est.shape[0] != gt.shape[0]:
+        raise ValueError(f"rpe: {est.shape[0]} estimated poses vs {gt.shape[0]} ground-truth poses (associate first)")
+    n = est.shape[0]
+    i = np.arange(max(n - delta, 0))
+    j = i + delta
+    ok = _finite_rows(est) & _finite_rows(gt)
+    valid = ok[i] & ok[j]
+    i, j = i[valid], j[valid]
+    rel_gt = _inv(gt[i]) @ gt[j]
+    rel_est = _inv(est[i]) @ est[j]
+    E = _inv(rel_gt) @ rel_est
+    et = np.linalg.norm(E[:, :3, 3], axis=1)
+    er = rotation_angle_deg(E[:, :3, :3])
+    st, sr = _stats(et), _stats(er)
+    out = {f"trans_{k}": st[k] for k in ("rmse", "mean", "median", "max")}
+    out.update({f"rot_{k}": sr[k] for k in ("rmse", "mean", "median", "max")})
+    out.update(
+        n_pairs=int(i.size),
+        n_excluded=int((~valid).sum()),
+        trans_errors=et,
+        rot_errors=er,
+        pairs=np.stack([i, j], 1),
+        delta=delta,
+    )
+    return out
