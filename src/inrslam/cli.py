@@ -19,7 +19,7 @@ from inrslam.errors import InrslamError
 
 def _registry_help() -> tuple[str, str]:
     from inrslam.fields.registry import ENCODINGS
-    from inrslam.rendering.registry import RENDERERS
+    from inrslam.rendering import RENDERERS
 
     return ENCODINGS.describe(), RENDERERS.describe()
 
@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run SLAM and write a run directory (trajectory, mesh, metrics, logs, checkpoints).",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        epilog="Overrides: any config key as KEY=VALUE, e.g. slam.track_iters=10 field.levels=16 "
-                              "data.builtin.frames=50. See configs in src/inrslam/configs/ and docs/config.md.")
+                              "data.builtin.frames=50. Print every key with `inrslam config`; see docs/config.md.")
     r.add_argument("--data", help="dataset folder (Replica, NeuralRGBD, ScanNet, TUM, 7-Scenes layouts) or "
                                   "builtin:NAME (see `inrslam scenes`); default builtin:room")
     r.add_argument("--out", help="output run directory (required unless --resume)")
@@ -56,6 +56,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("overrides", nargs="*", help="config overrides KEY=VALUE")
 
     sub.add_parser("scenes", help="list the built-in scenes")
+
+    c = sub.add_parser("config", help="print a resolved config as YAML (preset + file + overrides)")
+    c.add_argument("--preset", default="paper", help=f"preset: {', '.join(preset_names())} (default paper)")
+    c.add_argument("--config", help="YAML config file")
+    c.add_argument("overrides", nargs="*", help="config overrides KEY=VALUE")
 
     e = sub.add_parser("eval", help="evaluate a run directory, or outside trajectories / meshes")
     e.add_argument("run_dir", nargs="?", help="run directory to (re)evaluate")
@@ -90,7 +95,7 @@ def _run_command(args) -> int:
     from rich.console import Console
 
     from inrslam.config.loader import load_config
-    from inrslam.slam.run import resume_slam, run_slam
+    from inrslam.runner import resume_slam, run_slam
 
     console = Console(stderr=False)
     progress_cb, finish = _progress(console, quiet=args.quiet)
@@ -120,7 +125,7 @@ def _run_command(args) -> int:
 def _check_registry_names(cfg) -> None:
     from inrslam.errors import ConfigError
     from inrslam.fields.registry import ENCODINGS
-    from inrslam.rendering.registry import RENDERERS
+    from inrslam.rendering import RENDERERS
 
     if cfg.field.encoding not in ENCODINGS:
         raise ConfigError(f"config key 'field.encoding': {ENCODINGS.unknown_message(cfg.field.encoding)}")
@@ -143,8 +148,8 @@ def _progress(console, quiet: bool):
             state["task"] = prog.add_task("slam", total=n, info="")
             state["t0"] = time.perf_counter()
             state["start"] = i
-        if info.get("ate_m") is not None:
-            state["ate"] = info["ate_m"]
+        if "gt" in info and (i % 10 == 0 or i == n - 1):
+            state["ate"] = _current_ate(info["est"], info["gt"]) or state["ate"]
         done = i + 1 - state["start"]
         fps = done / max(time.perf_counter() - state["t0"], 1e-9)
         text = f"frame {i}  {fps:.2f} fps"
@@ -157,6 +162,18 @@ def _progress(console, quiet: bool):
             prog.stop()
 
     return cb, finish
+
+
+def _current_ate(est, gt) -> float | None:
+    """ATE RMSE (m) of the trajectory so far, or None with fewer than 3 frames with ground truth."""
+    import numpy as np
+
+    from inrslam.eval.trajectory import ate
+
+    est = est.double().cpu().numpy()
+    if np.isfinite(gt).all(axis=(1, 2)).sum() < 3:
+        return None
+    return float(ate(est, gt)["rmse"])
 
 
 def _print_metrics(console, run_dir: Path) -> None:
@@ -181,6 +198,15 @@ def _scenes_command(args) -> int:
     for name, desc in list_scenes():
         t.add_row(name + (" (default)" if name == DEFAULT_SCENE else ""), desc)
     Console().print(t)
+    return 0
+
+
+def _config_command(args) -> int:
+    from inrslam.config.loader import dump_config, load_config
+
+    cfg = load_config(args.config, preset=args.preset, overrides=list(args.overrides))
+    _check_registry_names(cfg)
+    print(dump_config(cfg), end="")
     return 0
 
 
@@ -235,7 +261,7 @@ def _report_command(args) -> int:
     return 0
 
 
-COMMANDS = {"run": _run_command, "scenes": _scenes_command, "eval": _eval_command, "bench": _bench_command,
+COMMANDS = {"run": _run_command, "scenes": _scenes_command, "config": _config_command, "eval": _eval_command, "bench": _bench_command,
             "report": _report_command}
 
 

@@ -121,8 +121,9 @@ def _merge(base: dict, new: dict, sources: dict, source: str, prefix: str = "") 
     out = dict(base)
     for k, v in new.items():
         full = f"{prefix}{k}"
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v, sources, source, prefix=f"{full}.")
+        if isinstance(v, dict):
+            base_k = out.get(k) if isinstance(out.get(k), dict) else {}
+            out[k] = _merge(base_k, v, sources, source, prefix=f"{full}.")
         else:
             out[k] = v
             sources[full] = source
@@ -243,4 +244,4 @@ def config_to_dict(cfg: Any) -> Any:
 
 def dump_config(cfg: Any) -> str:
     """Resolved config as plain YAML (feeding it back with `--config` and no preset reproduces `cfg`)."""
-    return yaml.safe_dump(config_to_dict(cfg), sort_keys=False, default_flow_style=None)
+    return yaml.safe_dump(config_to_dict(cfg), sort_keys=False, default_flow_style=False)

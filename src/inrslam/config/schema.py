@@ -2,27 +2,28 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field as _field
 
 from inrslam.data.config import DataConfig
 from inrslam.fields.config import FieldConfig
 from inrslam.rendering.config import LossConfig, RenderConfig, SamplingConfig
-from inrslam.slam.config import EvalConfig, MeshConfig, OutputConfig, SlamConfig
+from inrslam.eval.config import EvalConfig
+from inrslam.slam.config import MeshConfig, OutputConfig, SlamConfig
 
 
 @dataclass
 class RunConfig:
     """Everything a run needs. Written resolved to `<out>/config.yaml`."""
 
-    data: DataConfig = field(default_factory=DataConfig)
-    field: FieldConfig = field(default_factory=FieldConfig)
-    render: RenderConfig = field(default_factory=RenderConfig)
-    sampling: SamplingConfig = field(default_factory=SamplingConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    slam: SlamConfig = field(default_factory=SlamConfig)
-    mesh: MeshConfig = field(default_factory=MeshConfig)
-    eval: EvalConfig = field(default_factory=EvalConfig)
-    output: OutputConfig = field(default_factory=OutputConfig)
+    data: DataConfig = _field(default_factory=DataConfig)
+    field: FieldConfig = _field(default_factory=FieldConfig)
+    render: RenderConfig = _field(default_factory=RenderConfig)
+    sampling: SamplingConfig = _field(default_factory=SamplingConfig)
+    loss: LossConfig = _field(default_factory=LossConfig)
+    slam: SlamConfig = _field(default_factory=SlamConfig)
+    mesh: MeshConfig = _field(default_factory=MeshConfig)
+    eval: EvalConfig = _field(default_factory=EvalConfig)
+    output: OutputConfig = _field(default_factory=OutputConfig)
     seed: int = 0  # seed of every random choice (pixels, jitter, initialisation)
     device: str = "auto"  # auto (cuda if available), cpu, cuda, cuda:N
     threads: int = 0  # torch/numba threads (0 = all cores)

@@ -30,6 +30,10 @@ class EvalConfig:
     icp: bool = False  # point-to-point ICP of the reconstruction onto the GT mesh before the 3-D metrics
     seed: int = 0  # surface-sampling seed (reconstruction uses seed, GT uses seed + 1)
     mesh_metrics: bool = True  # compute Acc / Comp / Comp% when both meshes exist
+    enabled: bool = True  # evaluate at the end of a SLAM run
+    heldout_every: int = 10  # held-out full-frame renders of every N-th frame (PSNR/SSIM/depth L1; 0 = off)
+    heldout_max: int = 20  # at most this many held-out renders
+    heldout_samples: int = 96  # uniform samples per ray used to find the surface in held-out renders
 
     @classmethod
     def from_any(cls, obj: Any = None) -> "EvalConfig":

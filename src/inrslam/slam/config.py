@@ -52,23 +52,6 @@ class MeshConfig:
 
 
 @dataclass
-class EvalConfig:
-    """End-of-run evaluation (see docs/metrics.md)."""
-
-    enabled: bool = True  # evaluate at the end of the run
-    heldout_every: int = 10  # full-frame renders of every N-th frame for held-out PSNR/SSIM/depth L1 (0 = off)
-    heldout_max: int = 20  # at most this many held-out renders
-    heldout_samples: int = 96  # uniform samples per ray in held-out renders (no measured depth used)
-    align: str = "se3"  # ATE alignment: se3, sim3 or none
-    mesh_metrics: bool = True  # accuracy / completion when a GT mesh exists
-    cull_every: int = 2  # every N-th GT camera for culling
-    cull_eps: float = 0.03  # occlusion tolerance in metres
-    n_samples: int = 200000  # surface samples per mesh
-    threshold: float = 0.05  # completion-ratio threshold in metres
-    icp: bool = False  # ICP alignment of the reconstruction before mesh metrics (off as the paper's protocol says)
-
-
-@dataclass
 class OutputConfig:
     """What a run writes besides the mandatory outputs."""
 

@@ -96,6 +96,8 @@ class SlamSystem:
         self.track_ms: list[float] = []
         self.map_ms: list[float] = []
         self.init_ms = 0.0
+        self.wall_s_before = 0.0  # wall time of earlier (interrupted) segments of this run
+        self._t_start = time.perf_counter()
         self.proc_psnr: list[float] = []
         self.proc_depth_l1: list[float] = []
         self.events: list[dict] = []
@@ -122,7 +124,7 @@ class SlamSystem:
     def _keyframe_fraction(self) -> float:
         return 0.005 if self.cfg.slam.keyframe_variant else self.cfg.slam.keyframe_fraction
 
-    def _write_run_info(self, status: str) -> None:
+    def write_run_info(self, status: str) -> None:
         intr = self.dataset.intrinsics
         info = {
             "status": status,
@@ -133,6 +135,7 @@ class SlamSystem:
             "bounds": self.bounds.tolist(),
             "gt_mesh": str(self.dataset.gt_mesh) if getattr(self.dataset, "gt_mesh", None) else None,
             "keyframes": list(self.store.frame_ids),
+            "timestamps": self.timestamps[: self.next_frame].tolist(),
             "frames_processed": self.next_frame,
             "versions": {"inrslam": inrslam.__version__, "torch": torch.__version__, "numpy": np.__version__,
                          "python": platform.python_version()},
@@ -157,6 +160,7 @@ class SlamSystem:
             "track_ms": self.track_ms, "map_ms": self.map_ms, "init_ms": self.init_ms,
             "proc_psnr": self.proc_psnr, "proc_depth_l1": self.proc_depth_l1, "events": self.events,
             "log_bytes": log.stat().st_size if log.exists() else 0,
+            "wall_s": self.wall_s_before + time.perf_counter() - self._t_start,
         }
 
     def save_checkpoint(self) -> None:
@@ -178,6 +182,7 @@ class SlamSystem:
         self.track_ms, self.map_ms, self.init_ms = st["track_ms"], st["map_ms"], st["init_ms"]
         self.proc_psnr, self.proc_depth_l1, self.events = st["proc_psnr"], st["proc_depth_l1"], st["events"]
         self.next_frame = st["next_frame"]
+        self.wall_s_before = st["wall_s"]
         log = self.out / "log.jsonl"
         if log.exists():  # drop records written after the checkpoint, so the resumed log equals an uninterrupted one
             with open(log, "rb+") as f:
@@ -185,16 +190,16 @@ class SlamSystem:
 
     # -- the loop ----------------------------------------------------------------------------------------------
     def run(self, resume: bool = False) -> Path:
-        """Process every frame, then write outputs and evaluate. Returns the run directory."""
+        """Process every frame, then write the trajectory, mesh and process metrics. Returns the run directory."""
         self.out.mkdir(parents=True, exist_ok=True)
         if resume:
             self.load_checkpoint()
         else:
             write_text(self.out / "config.yaml", dump_config(self.cfg))
             (self.out / "log.jsonl").write_text("")
-        self._write_run_info("running")
+        self.write_run_info("running")
         self._open_tensorboard()
-        t_run = time.perf_counter()
+        self._t_start = time.perf_counter()
         ck_every = self.cfg.slam.checkpoint_every
         for i in range(self.next_frame, self.n_frames):
             frame = self.dataset[i]
@@ -207,19 +212,16 @@ class SlamSystem:
             if self.progress:
                 self.progress(i, self.n_frames, self._progress_info(i))
         self.save_checkpoint()
-        wall_s = time.perf_counter() - t_run
+        wall_s = self.wall_s_before + time.perf_counter() - self._t_start
         self._finish(wall_s)
         if self.tb is not None:
             self.tb.close()
         return self.out
 
     def _progress_info(self, i: int) -> dict:
-        info = {"track_ms": self.track_ms[-1] if self.track_ms else 0.0}
-        if (i % 10 == 0 or i == self.n_frames - 1) and np.isfinite(self.gt[: i + 1]).all(axis=(1, 2)).sum() >= 3:
-            from inrslam.eval.trajectory import ate
-
-            info["ate_m"] = ate(self.est[: i + 1].double().cpu().numpy(), self.gt[: i + 1])["rmse"]
-        return info
+        """What a progress display may show: last tracking time, and the trajectory so far with its GT."""
+        return {"track_ms": self.track_ms[-1] if self.track_ms else 0.0,
+                "est": self.est[: i + 1], "gt": self.gt[: i + 1]}
 
     def _process(self, i: int, frame: Frame) -> None:
         cfg = self.cfg.slam
@@ -330,29 +332,5 @@ class SlamSystem:
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
         }
-        if self.cfg.eval.enabled and self.cfg.eval.heldout_every:
-            metrics.update(self._heldout_metrics())
         write_json(self.out / "metrics.json", metrics)
-        self._write_run_info("evaluating")
-        if self.cfg.eval.enabled:
-            from inrslam.eval.run import evaluate_run
-
-            evaluate_run(self.out, self.cfg.eval)
-        self._write_run_info("complete")
-
-    @torch.no_grad()
-    def _heldout_metrics(self) -> dict:
-        from inrslam.eval.image import depth_l1, psnr, ssim
-
-        ev = self.cfg.eval
-        idx = list(range(0, self.n_frames, ev.heldout_every))[: ev.heldout_max]
-        ps, ss, dl = [], [], []
-        for i in idx:
-            frame = self.dataset[i]
-            rgb, depth = self.model.render_image(self.est[i], frame.intrinsics, n_coarse=ev.heldout_samples)
-            pred_rgb, pred_depth = rgb.clamp(0, 1).cpu().numpy(), depth.cpu().numpy()
-            ps.append(float(psnr(pred_rgb, frame.rgb)))
-            ss.append(float(ssim(pred_rgb, frame.rgb)))
-            dl.append(float(depth_l1(pred_depth, frame.depth)))
-        return {"psnr_db": float(np.mean(ps)), "ssim": float(np.mean(ss)), "depth_l1_m": float(np.nanmean(dl)),
-                "heldout_frames": idx}
+        self.write_run_info("slam_done")
