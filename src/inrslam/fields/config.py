@@ -1,0 +1,48 @@
+"""Typed configuration of the scene representation F (spec §3)."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+
+class Coupling(str, enum.Enum):
+    """Geometry/appearance coupling (spec §3.8)."""
+
+    COUPLED_BASE = "coupled_base"  # one encoder; SDF and colour decoders read the same features
+    COUPLED = "coupled"  # one encoder; SDF decoder emits 1 + geo_feat_dim, colour reads the geometric feature
+    DECOUPLED = "decoupled"  # two independent encoders (geometry / appearance)
+
+
+class KernelChoice(str, enum.Enum):
+    """Implementation of the grid / plane / line lookups."""
+
+    AUTO = "auto"  # fused numba kernels for CPU tensors, PyTorch reference otherwise
+    TORCH = "torch"  # PyTorch reference (gather + weights), any device
+    NUMBA = "numba"  # fused numba CPU kernels (CPU tensors only)
+
+
+@dataclass
+class FieldConfig:
+    """Scene representation F: encoding, resolutions, decoders, coupling and kernel choice."""
+
+    encoding: str = "dense"  # registry name: mlp | dense | hash | triplane | tensorf | dense+tri | hash+tri
+    coupling: Coupling = Coupling.COUPLED_BASE  # geometry/appearance coupling (ignored by hybrids)
+    levels: int = 2  # number of resolution levels of grids / planes / lines
+    feature_dim: int = 2  # features per vertex and level
+    block_coarse: float = 0.24  # coarsest geometry cell size, metres (level 0)
+    block_fine: float = 0.02  # finest geometry cell size, metres (last level)
+    app_block_coarse: float = 0.24  # coarsest appearance cell size of the decoupled colour encoder, metres
+    app_block_fine: float = 0.02  # finest appearance cell size of the decoupled colour encoder, metres
+    plane_block_coarse: float = 0.24  # cell size of the hybrids' single tri-plane level, metres
+    log2_hashmap_size: int = 19  # hash-grid table size per level = 2^this rows
+    geo_feat_dim: int = 15  # geometric feature width passed to the colour decoder in coupled mode
+    gamma: str = "identity"  # positional encoding of p̂ fed to decoders: identity | blob | freq
+    hidden_dim: int = 32  # hidden width of the grid / plane decoders and of the MLP heads
+    mlp_width: int = 256  # width of the MLP representation's trunk
+    mlp_depth: int = 4  # number of layers of the MLP representation's trunk
+    truncation: float = 0.1  # SDF truncation T, metres (field SDF is in units of T)
+    kernel: KernelChoice = KernelChoice.AUTO  # lookup implementation: auto | torch | numba
+    faithful: bool = False  # reproduce the original's quirks ([0,1] planes, ΣP⊙Σℓ TensoRF, cubic tcnn grids)
+    grid_init: float = 1e-4  # grid features init U(−grid_init, grid_init)
+    plane_init_std: float = 0.01  # plane / line features init N(0, plane_init_std²)

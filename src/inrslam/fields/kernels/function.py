@@ -1,0 +1,142 @@
+"""Autograd wrapper of the fused kernels and the backend dispatch ``multilinear``."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from inrslam.fields.kernels import numba_interp as nk
+from inrslam.fields.kernels.spec import InterpSpec
+from inrslam.fields.kernels.torch_interp import interp_torch
+
+#: Tables with more rows than this get a sparse (COO, unique rows) gradient from the fused backward;
+#: smaller ones get a dense gradient (cheaper when most rows are touched anyway).
+DENSE_GRAD_MAX_ROWS = 1 << 16
+
+
+def workspace(spec: InterpSpec) -> np.ndarray:
+    """The (M,) int32 scratch array (all −1 between uses) of the row-compaction kernels, created on first use."""
+    ws = getattr(spec, "_slot", None)
+    if ws is None or ws.shape[0] != spec.total_rows:
+        ws = np.full(spec.total_rows, -1, dtype=np.int32)
+        spec._slot = ws
+    return ws
+
+
+def _meta(spec: InterpSpec):
+    return (spec.ndim, spec.axes, spec.res, spec.scale, spec.offset, spec.stride, spec.hashed, spec.rows,
+            spec.row_off)
+
+
+def _is_trilinear(spec: InterpSpec) -> bool:
+    """All entries are 3-D over axes (x,y,z): use the specialised trilinear kernels."""
+    tri = getattr(spec, "_trilinear", None)
+    if tri is None:
+        tri = bool(np.all(spec.ndim == 3) and np.all(spec.axes == np.array([0, 1, 2])))
+        spec._trilinear = tri
+    return tri
+
+
+def _tri_meta(spec: InterpSpec):
+    return (spec.res, spec.scale, spec.offset, spec.stride, spec.hashed, spec.rows, spec.row_off)
+
+
+def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dtype, sparse: bool) -> torch.Tensor:
+    """∂L/∂T from the fused kernel: sparse COO with unique rows (``sparse``) or dense (M,F)."""
+    M, F = shape
+    if not sparse:
+        grad = torch.zeros(M, F, dtype=dtype)
+        if _is_trilinear(spec):
+            nk.tri_backward_table_dense(xn, g, *_tri_meta(spec), grad.numpy())
+        else:
+            nk.interp_backward_table_dense(xn, g, *_meta(spec), grad.numpy())
+        return grad
+    N = xn.shape[0]
+    caps = np.minimum(N * (1 << spec.ndim), spec.rows).astype(np.int64)
+    cap_off = np.zeros_like(caps)
+    cap_off[1:] = np.cumsum(caps)[:-1]
+    out_rows = np.empty(int(caps.sum()), np.int64)
+    out_vals = np.zeros((int(caps.sum()), F), dtype=g.dtype)
+    counts = np.zeros(spec.n_entries, np.int64)
+    if _is_trilinear(spec):
+        nk.tri_backward_table_sparse(xn, g, *_tri_meta(spec), workspace(spec), cap_off, out_rows, out_vals, counts)
+    else:
+        nk.interp_backward_table_sparse(xn, g, *_meta(spec), workspace(spec), cap_off, out_rows, out_vals, counts)
+    if spec.n_entries == 1:
+        rows, vals = out_rows[: counts[0]], out_vals[: counts[0]]
+    else:
+        rows = np.concatenate([out_rows[o : o + c] for o, c in zip(cap_off, counts)])
+        vals = np.concatenate([out_vals[o : o + c] for o, c in zip(cap_off, counts)])
+    values = torch.from_numpy(vals)
+    spec._unique_values_ptr = values.data_ptr()  # lets the optimizer skip de-duplicating this exact gradient
+    return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], values, (M, F), check_invariants=False)
+
+
+class MultilinearFn(torch.autograd.Function):
+    """Fused lookup: forward (N,E,F); backward to xn (dense) and to the table (sparse rows or dense).
+
+    Double backward (``create_graph=True``, e.g. losses on SDF normals) recomputes through the reference.
+    """
+
+    @staticmethod
+    def forward(ctx, xn: torch.Tensor, table: torch.Tensor, spec: InterpSpec, sparse: bool) -> torch.Tensor:
+        tab = table.detach()
+        xn_np = xn.detach().contiguous().numpy()
+        if _is_trilinear(spec):
+            out = torch.empty(xn.shape[0], spec.n_entries, tab.shape[1], dtype=tab.dtype)
+            nk.tri_forward(xn_np, tab.numpy(), *_tri_meta(spec), out.numpy())
+        else:
+            out = torch.zeros(xn.shape[0], spec.n_entries, tab.shape[1], dtype=tab.dtype)
+            nk.interp_forward(xn_np, tab.numpy(), *_meta(spec), out.numpy())
+        ctx.save_for_backward(xn, table)
+        ctx.spec = spec
+        ctx.sparse = sparse
+        return out
+
+    @staticmethod
+    def backward(ctx, g: torch.Tensor):
+        xn, table = ctx.saved_tensors
+        spec = ctx.spec
+        need_x, need_t = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        if torch.is_grad_enabled():  # create_graph: differentiate the (twice-differentiable) reference
+            inputs = [v for v, need in ((xn, need_x), (table, need_t)) if need]
+            out = interp_torch(xn, table, spec)
+            grads = list(torch.autograd.grad(out, inputs, g, create_graph=True, allow_unused=True))
+            gx = grads.pop(0) if need_x else None
+            gt = grads.pop(0) if need_t else None
+            return gx, gt, None, None
+        g_np = g.contiguous().numpy()
+        xn_np = xn.detach().contiguous().numpy()
+        gx = gt = None
+        if need_x:
+            gx64 = np.zeros((xn.shape[0], 3), np.float64)
+            if _is_trilinear(spec):
+                nk.tri_backward_x(xn_np, table.detach().numpy(), g_np, *_tri_meta(spec), gx64)
+            else:
+                nk.interp_backward_x(xn_np, table.detach().numpy(), g_np, *_meta(spec), gx64)
+            gx = torch.from_numpy(gx64).to(xn.dtype)
+        if need_t:
+            gt = table_grad_numba(xn_np, g_np, spec, tuple(table.shape), table.dtype, ctx.sparse)
+        return gx, gt, None, None
+
+
+def multilinear(xn: torch.Tensor, table: torch.Tensor, spec: InterpSpec, backend: str = "auto",
+                sparse: bool | None = None) -> torch.Tensor:
+    """Multilinear lookup of E entries: xn (N,3) in [0,1] (clamped), table (M,F) -> (N,E,F).
+
+    backend: "numba" (fused CPU kernel), "torch" (reference, any device) or "auto" (numba on CPU tensors).
+    sparse: table-gradient layout of the fused path; None = sparse iff M > DENSE_GRAD_MAX_ROWS.
+    """
+    if backend == "auto":
+        backend = "numba" if table.device.type == "cpu" else "torch"
+    if backend == "torch":
+        return interp_torch(xn.to(table.dtype), table, spec)
+    if backend != "numba":
+        raise ValueError(f"unknown kernel backend {backend!r} (choices: auto, torch, numba)")
+    if table.device.type != "cpu" or xn.device.type != "cpu":
+        raise ValueError("kernel='numba' needs CPU tensors; use kernel='auto' or 'torch' on other devices")
+    if table.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"kernel='numba' supports float32/float64 tables, got {table.dtype}")
+    if sparse is None:
+        sparse = table.shape[0] > DENSE_GRAD_MAX_ROWS
+    return MultilinearFn.apply(xn.to(table.dtype), table, spec, bool(sparse))

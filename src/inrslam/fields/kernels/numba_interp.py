@@ -1,0 +1,409 @@
+"""Fused CPU kernels (numba, ``parallel=True``) for multilinear table lookups; see ``spec.py`` for the maths.
+
+Layout: points ``xn (N,3)`` normalised to [0,1] (float32 or float64), table ``T (M,F)``, output ``(N,E,F)``.
+Race freedom: the forward and the input backward parallelise over points (each point owns its output row);
+the table backward parallelises over entries, whose row ranges are disjoint, and loops over points serially
+inside an entry, so no two threads ever write the same table row.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+_P1 = np.int64(2654435761)
+_P2 = np.int64(805459861)
+
+
+@njit(inline="always", cache=True)
+def _axis(p, scale, offset, res):
+    """Corner index i, weight w and du/dp̂ (0 where a clamp is active) of one axis."""
+    du = scale
+    if p < 0.0:
+        p = 0.0
+        du = 0.0
+    elif p > 1.0:
+        p = 1.0
+        du = 0.0
+    u = p * scale + offset
+    hi = res - 1.0
+    if u < 0.0:
+        u = 0.0
+        du = 0.0
+    elif u > hi:
+        u = hi
+        du = 0.0
+    i = np.int64(math.floor(u))
+    if i > res - 2:
+        i = res - 2
+    return i, u - i, du
+
+
+@njit(inline="always", cache=True)
+def _row(hashed, nrows, i0, i1, i2, s0, s1, s2):
+    """Row (relative to the entry) of integer vertex (i0, i1, i2)."""
+    if hashed:
+        return (i0 ^ (i1 * _P1) ^ (i2 * _P2)) & (nrows - 1)
+    return i0 * s0 + i1 * s1 + i2 * s2
+
+
+@njit(inline="always", cache=True)
+def _setup(xn, n, e, ndim, axes, res, scale, offset):
+    d = ndim[e]
+    i1 = np.int64(0)
+    i2 = np.int64(0)
+    w1 = 0.0
+    w2 = 0.0
+    d1 = 0.0
+    d2 = 0.0
+    i0, w0, d0 = _axis(np.float64(xn[n, axes[e, 0]]), scale[e, 0], offset[e, 0], res[e, 0])
+    if d > 1:
+        i1, w1, d1 = _axis(np.float64(xn[n, axes[e, 1]]), scale[e, 1], offset[e, 1], res[e, 1])
+    if d > 2:
+        i2, w2, d2 = _axis(np.float64(xn[n, axes[e, 2]]), scale[e, 2], offset[e, 2], res[e, 2])
+    return d, i0, i1, i2, w0, w1, w2, d0, d1, d2
+
+
+@njit(inline="always", cache=True)
+def _corner(c, d, w0, w1, w2):
+    """Bits of corner c and its per-axis factors t_k = (bit ? w_k : 1 − w_k) (1 for unused axes)."""
+    b0 = c & 1
+    b1 = (c >> 1) & 1
+    b2 = (c >> 2) & 1
+    t0 = w0 if b0 else 1.0 - w0
+    t1 = 1.0
+    t2 = 1.0
+    if d > 1:
+        t1 = w1 if b1 else 1.0 - w1
+    if d > 2:
+        t2 = w2 if b2 else 1.0 - w2
+    return b0, b1, b2, t0, t1, t2
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def interp_forward(xn, table, ndim, axes, res, scale, offset, stride, hashed, rows, row_off, out):
+    """out[n,e,:] = Σ_c w_c(n,e) · T[row_c(n,e), :]   (out pre-zeroed, (N,E,F))."""
+    N = xn.shape[0]
+    E = ndim.shape[0]
+    F = table.shape[1]
+    for n in prange(N):
+        for e in range(E):
+            d, i0, i1, i2, w0, w1, w2, _d0, _d1, _d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
+            base = row_off[e]
+            for c in range(1 << d):
+                b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
+                wt = t0 * t1 * t2
+                r = base + _row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
+                                stride[e, 0], stride[e, 1], stride[e, 2])
+                for f in range(F):
+                    out[n, e, f] += wt * table[r, f]
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def interp_backward_x(xn, table, g, ndim, axes, res, scale, offset, stride, hashed, rows, row_off, gx):
+    """gx[n,a] += Σ_e Σ_c (∂w_c/∂u_k · du_k/dp̂_a) ⟨T[row_c], g[n,e]⟩   (gx pre-zeroed float64 (N,3))."""
+    N = xn.shape[0]
+    E = ndim.shape[0]
+    F = table.shape[1]
+    for n in prange(N):
+        for e in range(E):
+            d, i0, i1, i2, w0, w1, w2, d0, d1, d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
+            base = row_off[e]
+            gu0 = 0.0
+            gu1 = 0.0
+            gu2 = 0.0
+            for c in range(1 << d):
+                b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
+                r = base + _row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
+                                stride[e, 0], stride[e, 1], stride[e, 2])
+                dot = 0.0
+                for f in range(F):
+                    dot += table[r, f] * g[n, e, f]
+                s0 = 1.0 if b0 else -1.0
+                s1 = 1.0 if b1 else -1.0
+                s2 = 1.0 if b2 else -1.0
+                gu0 += dot * s0 * t1 * t2
+                gu1 += dot * t0 * s1 * t2
+                gu2 += dot * t0 * t1 * s2
+            gx[n, axes[e, 0]] += gu0 * d0
+            if d > 1:
+                gx[n, axes[e, 1]] += gu1 * d1
+            if d > 2:
+                gx[n, axes[e, 2]] += gu2 * d2
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def interp_backward_table_dense(xn, g, ndim, axes, res, scale, offset, stride, hashed, rows, row_off, grad):
+    """grad[row_c] += w_c · g[n,e] into a pre-zeroed dense (M,F) array (parallel over entries)."""
+    N = xn.shape[0]
+    E = ndim.shape[0]
+    F = grad.shape[1]
+    for e in prange(E):
+        base = row_off[e]
+        for n in range(N):
+            d, i0, i1, i2, w0, w1, w2, _d0, _d1, _d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
+            for c in range(1 << d):
+                b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
+                wt = t0 * t1 * t2
+                r = base + _row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
+                                stride[e, 0], stride[e, 1], stride[e, 2])
+                for f in range(F):
+                    grad[r, f] += wt * g[n, e, f]
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def interp_backward_table_sparse(xn, g, ndim, axes, res, scale, offset, stride, hashed, rows, row_off,
+                                 slot, cap_off, out_rows, out_vals, counts):
+    """Touched rows (non-zero interpolation weight) and their summed gradients, per entry: rows out_rows[cap_off[e] : cap_off[e] + counts[e]]
+    (unique, in first-touch order), values out_vals[same] (pre-zeroed). ``slot`` (M,) int32 must be all −1 on
+    entry and is restored to −1 on exit; cost is O(N·2^D) per entry, independent of the table size."""
+    N = xn.shape[0]
+    E = ndim.shape[0]
+    F = out_vals.shape[1]
+    for e in prange(E):
+        base = row_off[e]
+        cb = cap_off[e]
+        cnt = 0
+        for n in range(N):
+            d, i0, i1, i2, w0, w1, w2, _d0, _d1, _d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
+            for c in range(1 << d):
+                b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
+                wt = t0 * t1 * t2
+                if wt == 0.0:  # zero-weight corner: not touched
+                    continue
+                r = base + _row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
+                                stride[e, 0], stride[e, 1], stride[e, 2])
+                s = slot[r]
+                if s < 0:
+                    s = cnt
+                    slot[r] = cnt
+                    out_rows[cb + cnt] = r
+                    cnt += 1
+                for f in range(F):
+                    out_vals[cb + s, f] += wt * g[n, e, f]
+        counts[e] = cnt
+        for k in range(cnt):
+            slot[out_rows[cb + k]] = -1
+
+
+@njit(cache=True)
+def unique_rows_sum(rows, vals, slot, out_rows, out_vals):
+    """Sum duplicate rows: returns k, with out_rows[:k] unique and out_vals[:k] (pre-zeroed) their sums.
+    ``slot`` (M,) int32 all −1 on entry and exit. O(nnz), no sort."""
+    cnt = 0
+    F = vals.shape[1]
+    for j in range(rows.shape[0]):
+        r = rows[j]
+        s = slot[r]
+        if s < 0:
+            s = cnt
+            slot[r] = cnt
+            out_rows[cnt] = r
+            cnt += 1
+        for f in range(F):
+            out_vals[s, f] += vals[j, f]
+    for k in range(cnt):
+        slot[out_rows[k]] = -1
+    return cnt
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def lazy_adam_rows(p, m, v, rows, g, step_size, beta1, beta2, eps, bc2_sqrt):
+    """Adam on the given (unique) rows only:
+    m_r ← β1 m_r + (1−β1) g_r;  v_r ← β2 v_r + (1−β2) g_r²;  p_r ← p_r − step_size · m_r / (√v_r / √bc2 + ε),
+    step_size = lr / (1 − β1^t), bc2 = 1 − β2^t (torch.optim.Adam's formula)."""
+    F = p.shape[1]
+    for k in prange(rows.shape[0]):
+        r = rows[k]
+        for f in range(F):
+            gi = np.float64(g[k, f])
+            mi = beta1 * m[r, f] + (1.0 - beta1) * gi
+            vi = beta2 * v[r, f] + (1.0 - beta2) * gi * gi
+            m[r, f] = mi
+            v[r, f] = vi
+            p[r, f] -= step_size * mi / (math.sqrt(vi) / bc2_sqrt + eps)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Trilinear specialisation (grid levels: D = 3, axes (x,y,z)): the 8 corner rows come from per-axis terms,
+# r = base + (i + c_x) + (j + c_y)·s_y + (k + c_z)·s_z   or   ((i+c_x) ⊕ (j+c_y)·P1 ⊕ (k+c_z)·P2) mod rows,
+# and corners are summed in the same order as the generic kernel / reference (bit 0 = x).
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@njit(inline="always", cache=True)
+def _tri(xn, n, e, res, scale, offset, stride, hashed, rows, row_off):
+    ix, wx, dx = _axis(np.float64(xn[n, 0]), scale[e, 0], offset[e, 0], res[e, 0])
+    iy, wy, dy = _axis(np.float64(xn[n, 1]), scale[e, 1], offset[e, 1], res[e, 1])
+    iz, wz, dz = _axis(np.float64(xn[n, 2]), scale[e, 2], offset[e, 2], res[e, 2])
+    base = row_off[e]
+    if hashed[e]:
+        mask = rows[e] - 1
+        y0 = iy * _P1
+        y1 = y0 + _P1
+        z0 = iz * _P2
+        z1 = z0 + _P2
+        x1 = ix + 1
+        r0 = base + ((ix ^ y0 ^ z0) & mask)
+        r1 = base + ((x1 ^ y0 ^ z0) & mask)
+        r2 = base + ((ix ^ y1 ^ z0) & mask)
+        r3 = base + ((x1 ^ y1 ^ z0) & mask)
+        r4 = base + ((ix ^ y0 ^ z1) & mask)
+        r5 = base + ((x1 ^ y0 ^ z1) & mask)
+        r6 = base + ((ix ^ y1 ^ z1) & mask)
+        r7 = base + ((x1 ^ y1 ^ z1) & mask)
+    else:
+        sy = stride[e, 1]
+        sz = stride[e, 2]
+        r0 = base + ix + iy * sy + iz * sz
+        r1 = r0 + 1
+        r2 = r0 + sy
+        r3 = r2 + 1
+        r4 = r0 + sz
+        r5 = r4 + 1
+        r6 = r4 + sy
+        r7 = r6 + 1
+    return r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def tri_forward(xn, table, res, scale, offset, stride, hashed, rows, row_off, out):
+    """Trilinear multi-level lookup: out[n,e,:] = Σ_c w_c T[r_c, :]  ((N,E,F), written, not accumulated)."""
+    N = xn.shape[0]
+    E = res.shape[0]
+    F = table.shape[1]
+    for n in prange(N):
+        for e in range(E):
+            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
+                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
+            ux = 1.0 - wx
+            uy = 1.0 - wy
+            uz = 1.0 - wz
+            w0 = ux * uy * uz
+            w1 = wx * uy * uz
+            w2 = ux * wy * uz
+            w3 = wx * wy * uz
+            w4 = ux * uy * wz
+            w5 = wx * uy * wz
+            w6 = ux * wy * wz
+            w7 = wx * wy * wz
+            for f in range(F):
+                out[n, e, f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f] + w3 * table[r3, f]
+                                + w4 * table[r4, f] + w5 * table[r5, f] + w6 * table[r6, f] + w7 * table[r7, f])
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def tri_backward_x(xn, table, g, res, scale, offset, stride, hashed, rows, row_off, gx):
+    """gx[n,:] = Σ_e ∇_p̂ ⟨f_e(p̂), g[n,e]⟩ for trilinear levels (gx (N,3) float64, written)."""
+    N = xn.shape[0]
+    E = res.shape[0]
+    F = table.shape[1]
+    for n in prange(N):
+        ax = 0.0
+        ay = 0.0
+        az = 0.0
+        for e in range(E):
+            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz = _tri(
+                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
+            q0 = 0.0
+            q1 = 0.0
+            q2 = 0.0
+            q3 = 0.0
+            q4 = 0.0
+            q5 = 0.0
+            q6 = 0.0
+            q7 = 0.0
+            for f in range(F):
+                gf = np.float64(g[n, e, f])
+                q0 += table[r0, f] * gf
+                q1 += table[r1, f] * gf
+                q2 += table[r2, f] * gf
+                q3 += table[r3, f] * gf
+                q4 += table[r4, f] * gf
+                q5 += table[r5, f] * gf
+                q6 += table[r6, f] * gf
+                q7 += table[r7, f] * gf
+            ux = 1.0 - wx
+            uy = 1.0 - wy
+            uz = 1.0 - wz
+            ax += dx * (uy * uz * (q1 - q0) + wy * uz * (q3 - q2) + uy * wz * (q5 - q4) + wy * wz * (q7 - q6))
+            ay += dy * (ux * uz * (q2 - q0) + wx * uz * (q3 - q1) + ux * wz * (q6 - q4) + wx * wz * (q7 - q5))
+            az += dz * (ux * uy * (q4 - q0) + wx * uy * (q5 - q1) + ux * wy * (q6 - q2) + wx * wy * (q7 - q3))
+        gx[n, 0] = ax
+        gx[n, 1] = ay
+        gx[n, 2] = az
+
+
+@njit(inline="always", cache=True)
+def _acc_dense(grad, r, wt, g, n, e, F):
+    for f in range(F):
+        grad[r, f] += wt * g[n, e, f]
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def tri_backward_table_dense(xn, g, res, scale, offset, stride, hashed, rows, row_off, grad):
+    """grad[r_c] += w_c g[n,e] into a pre-zeroed dense (M,F) array (parallel over levels)."""
+    N = xn.shape[0]
+    E = res.shape[0]
+    F = grad.shape[1]
+    for e in prange(E):
+        for n in range(N):
+            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
+                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
+            ux = 1.0 - wx
+            uy = 1.0 - wy
+            uz = 1.0 - wz
+            _acc_dense(grad, r0, ux * uy * uz, g, n, e, F)
+            _acc_dense(grad, r1, wx * uy * uz, g, n, e, F)
+            _acc_dense(grad, r2, ux * wy * uz, g, n, e, F)
+            _acc_dense(grad, r3, wx * wy * uz, g, n, e, F)
+            _acc_dense(grad, r4, ux * uy * wz, g, n, e, F)
+            _acc_dense(grad, r5, wx * uy * wz, g, n, e, F)
+            _acc_dense(grad, r6, ux * wy * wz, g, n, e, F)
+            _acc_dense(grad, r7, wx * wy * wz, g, n, e, F)
+
+
+@njit(inline="always", cache=True)
+def _acc_sparse(slot, out_rows, out_vals, cb, cnt, r, wt, g, n, e, F):
+    if wt == 0.0:  # zero-weight corner (e.g. a clamped point on the box face): not touched
+        return cnt
+    s = slot[r]
+    if s < 0:
+        s = cnt
+        slot[r] = cnt
+        out_rows[cb + cnt] = r
+        cnt += 1
+    for f in range(F):
+        out_vals[cb + s, f] += wt * g[n, e, f]
+    return cnt
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def tri_backward_table_sparse(xn, g, res, scale, offset, stride, hashed, rows, row_off,
+                              slot, cap_off, out_rows, out_vals, counts):
+    """Sparse table gradient of trilinear levels; same contract as ``interp_backward_table_sparse``."""
+    N = xn.shape[0]
+    E = res.shape[0]
+    F = out_vals.shape[1]
+    for e in prange(E):
+        cb = cap_off[e]
+        cnt = 0
+        for n in range(N):
+            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
+                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
+            ux = 1.0 - wx
+            uy = 1.0 - wy
+            uz = 1.0 - wz
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r0, ux * uy * uz, g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r1, wx * uy * uz, g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r2, ux * wy * uz, g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r3, wx * wy * uz, g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r4, ux * uy * wz, g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r5, wx * uy * wz, g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r6, ux * wy * wz, g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r7, wx * wy * wz, g, n, e, F)
+        counts[e] = cnt
+        for k in range(cnt):
+            slot[out_rows[cb + k]] = -1

@@ -1,0 +1,277 @@
+"""Scene representations F: encoder(s) + decoders -> (SDF in truncation units, colour logits) (spec §3).
+
+Every field normalises world points x (metres) to p̂ = (x − b_min)/(b_max − b_min); encoders clamp p̂ to the
+unit box for their table lookups (border extension: an outside point reads the nearest box face, with zero
+gradient along the clamped axes), while the positional encoding γ sees the unclamped p̂.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import NamedTuple, Optional
+
+import numpy as np
+import torch
+from torch import nn
+
+from inrslam.errors import ConfigError
+from inrslam.fields.config import Coupling, FieldConfig, KernelChoice
+from inrslam.fields.encoders import GridEncoder, TensoRFEncoder, TriPlaneEncoder
+from inrslam.fields.gamma import FourierFeatures, make_gamma
+from inrslam.fields.registry import ENCODINGS
+from inrslam.fields.resolution import plane_sizes
+
+
+class FieldOutput(NamedTuple):
+    """Raw field outputs at N points."""
+
+    sdf: torch.Tensor  # (N,) SDF in truncation units (metric SDF = sdf · truncation)
+    rgb_logits: Optional[torch.Tensor]  # (N,3) colour logits (sigmoid at render time); None from ``Field.sdf``
+
+
+def grid_decoder(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
+    """"Grid decoder" (spec §3.4): Linear(in→h) ReLU Linear(h→out), no biases."""
+    return nn.Sequential(nn.Linear(in_dim, hidden, bias=False), nn.ReLU(), nn.Linear(hidden, out_dim, bias=False))
+
+
+def plane_decoder(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
+    """"Decomp decoder" (spec §3.6): Linear(in→h) ReLU Linear(h→h) ReLU Linear(h→out), with biases."""
+    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                         nn.Linear(hidden, out_dim))
+
+
+def mlp_trunk(in_dim: int, width: int, depth: int) -> nn.Sequential:
+    """depth × (Linear, ReLU) of the given width (spec §3.3; the configured skip never triggers)."""
+    layers: list[nn.Module] = []
+    for i in range(depth):
+        layers += [nn.Linear(in_dim if i == 0 else width, width), nn.ReLU()]
+    return nn.Sequential(*layers)
+
+
+class Field(nn.Module):
+    """Base scene representation. ``forward(x (N,3) m) -> FieldOutput``; ``sdf(x) -> (N,)`` T-units.
+
+    Buffers: ``bounds (3,2)`` metres. Attribute ``truncation`` (m).
+    """
+
+    def __init__(self, cfg: FieldConfig, bounds: np.ndarray):
+        super().__init__()
+        self.cfg = replace(cfg)
+        self.truncation = float(cfg.truncation)
+        b = np.asarray(bounds, dtype=np.float64)
+        self.register_buffer("bounds", torch.tensor(b, dtype=torch.float32))
+        self.extent = b[:, 1] - b[:, 0]  # (3,) metres, float64 (resolution rules)
+
+    def normalise(self, x: torch.Tensor) -> torch.Tensor:
+        """p̂ = (x − b_min)/(b_max − b_min), (N,3), not clamped."""
+        b = self.bounds.to(x.dtype)
+        return (x - b[:, 0]) / (b[:, 1] - b[:, 0])
+
+    def forward(self, x: torch.Tensor) -> FieldOutput:
+        return self._decode(self.normalise(x), need_rgb=True)
+
+    def sdf(self, x: torch.Tensor) -> torch.Tensor:
+        """SDF only (skips the colour branch), (N,) truncation units."""
+        return self._decode(self.normalise(x), need_rgb=False).sdf
+
+    def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
+        raise NotImplementedError
+
+
+class EncoderField(Field):
+    """Encoder + decoders with the three coupling modes of spec §3.8.
+
+    coupled_base: s = D_s([f, γ]), c = D_c([γ, f]);  coupled: [s, g] = D_s([f, γ]), c = D_c([g, γ]) (g 15-d);
+    decoupled: s = D_s([f_geo, γ]), c = D_c([γ, f_app]) with an independent appearance encoder.
+    """
+
+    plane_style = False  # plane decoders (biases, 3 layers, tanh on the SDF output)
+
+    def make_encoder(self, coarse: float, fine: float) -> nn.Module:
+        raise NotImplementedError
+
+    def __init__(self, cfg: FieldConfig, bounds: np.ndarray):
+        super().__init__(cfg, bounds)
+        self.coupling = Coupling(cfg.coupling)
+        self.gamma = make_gamma(cfg.gamma)
+        self.encoder = self.make_encoder(cfg.block_coarse, cfg.block_fine)
+        self.app_encoder = (self.make_encoder(cfg.app_block_coarse, cfg.app_block_fine)
+                            if self.coupling is Coupling.DECOUPLED else None)
+        dec = plane_decoder if self.plane_style else grid_decoder
+        f, gd, h = self.encoder.out_dim, self.gamma.out_dim, cfg.hidden_dim
+        g = cfg.geo_feat_dim if self.coupling is Coupling.COUPLED else 0
+        self.sdf_net = dec(f + gd, h, 1 + g)
+        if self.coupling is Coupling.COUPLED:
+            self.rgb_net = dec(g + gd, h, 3)
+        elif self.coupling is Coupling.DECOUPLED:
+            self.rgb_net = dec(gd + self.app_encoder.out_dim, h, 3)
+        else:
+            self.rgb_net = dec(gd + f, h, 3)
+
+    def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
+        gam = self.gamma(p)
+        feat = self.encoder(p)
+        h = self.sdf_net(torch.cat([feat, gam], dim=-1))
+        if self.plane_style:
+            h = torch.tanh(h)
+        if not need_rgb:
+            return FieldOutput(h[:, 0], None)
+        if self.coupling is Coupling.COUPLED:
+            rgb = self.rgb_net(torch.cat([h[:, 1:], gam], dim=-1))
+        elif self.coupling is Coupling.DECOUPLED:
+            rgb = self.rgb_net(torch.cat([gam, self.app_encoder(p)], dim=-1))
+        else:
+            rgb = self.rgb_net(torch.cat([gam, feat], dim=-1))
+        return FieldOutput(h[:, 0], rgb)
+
+
+@ENCODINGS.register("mlp", help="4x256 MLP on Gaussian Fourier features (iMAP-like)")
+class MLPField(Field):
+    """F = MLP (spec §3.3): x = sin(p̂ᵀB) (93-d), trunk depth × width ReLU, SDF head width→h→1(+g).
+
+    Colour: coupled_base reads the trunk output; coupled reads [g, x]; decoupled has its own trunk on x.
+    """
+
+    def __init__(self, cfg: FieldConfig, bounds: np.ndarray):
+        super().__init__(cfg, bounds)
+        self.coupling = Coupling(cfg.coupling)
+        self.freq = FourierFeatures()
+        d, w, h = self.freq.out_dim, cfg.mlp_width, cfg.hidden_dim
+        g = cfg.geo_feat_dim if self.coupling is Coupling.COUPLED else 0
+        self.trunk = mlp_trunk(d, w, cfg.mlp_depth)
+        self.sdf_head = nn.Sequential(nn.Linear(w, h), nn.ReLU(), nn.Linear(h, 1 + g))
+        self.rgb_trunk = mlp_trunk(d, w, cfg.mlp_depth) if self.coupling is Coupling.DECOUPLED else None
+        rgb_in = g + d if self.coupling is Coupling.COUPLED else w
+        self.rgb_head = nn.Sequential(nn.Linear(rgb_in, h), nn.ReLU(), nn.Linear(h, 3))
+
+    def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
+        x = self.freq(p)
+        t = self.trunk(x)
+        h = self.sdf_head(t)
+        if not need_rgb:
+            return FieldOutput(h[:, 0], None)
+        if self.coupling is Coupling.COUPLED:
+            rgb = self.rgb_head(torch.cat([h[:, 1:], x], dim=-1))
+        elif self.coupling is Coupling.DECOUPLED:
+            rgb = self.rgb_head(self.rgb_trunk(x))
+        else:
+            rgb = self.rgb_head(t)
+        return FieldOutput(h[:, 0], rgb)
+
+
+class _GridField(EncoderField):
+    hashed = False
+
+    def make_encoder(self, coarse: float, fine: float) -> nn.Module:
+        c = self.cfg
+        return GridEncoder(self.extent, coarse, fine, c.levels, c.feature_dim, self.hashed, c.log2_hashmap_size,
+                           c.faithful, c.grid_init, c.kernel)
+
+
+@ENCODINGS.register("dense", help="multi-resolution dense feature grid (24 cm .. 2 cm), trilinear")
+class DenseGridField(_GridField):
+    """F = Dense grid (spec §3.4) with the grid decoder."""
+
+
+@ENCODINGS.register("hash", help="multi-resolution hash grid (2^log2_hashmap_size rows per level)")
+class HashGridField(_GridField):
+    """F = Sparse / hash grid (spec §3.5) with the grid decoder."""
+
+    hashed = True
+
+
+@ENCODINGS.register("triplane", help="multi-resolution tri-plane (sum of xy, xz, yz planes), tanh SDF decoder")
+class TriPlaneField(EncoderField):
+    """F = Tri-plane (spec §3.6) with the plane decoder."""
+
+    plane_style = True
+
+    def make_encoder(self, coarse: float, fine: float) -> nn.Module:
+        c = self.cfg
+        sizes = plane_sizes(self.extent, coarse, fine, c.levels, c.faithful)
+        return TriPlaneEncoder(sizes, c.feature_dim, c.faithful, c.plane_init_std, c.kernel)
+
+
+@ENCODINGS.register("tensorf", help="TensoRF vector-matrix factorisation (planes x lines), tanh SDF decoder")
+class TensoRFField(EncoderField):
+    """F = Fact. / TensoRF (spec §3.7; true VM by default) with the plane decoder."""
+
+    plane_style = True
+
+    def make_encoder(self, coarse: float, fine: float) -> nn.Module:
+        c = self.cfg
+        sizes = plane_sizes(self.extent, coarse, fine, c.levels, c.faithful)
+        return TensoRFEncoder(sizes, c.feature_dim, c.faithful, c.plane_init_std, c.kernel)
+
+
+class _HybridField(Field):
+    """Hybrid (spec §3.9): grid + one coarse tri-plane level for geometry, grid only for colour; coupling ignored.
+
+    s = D_s([f_grid, f_plane, γ]) (no tanh), c = D_c([γ, f_grid]); both grid decoders (no biases).
+    """
+
+    hashed = False
+
+    def __init__(self, cfg: FieldConfig, bounds: np.ndarray):
+        super().__init__(cfg, bounds)
+        c = cfg
+        self.gamma = make_gamma(c.gamma)
+        self.grid = GridEncoder(self.extent, c.block_coarse, c.block_fine, c.levels, c.feature_dim, self.hashed,
+                                c.log2_hashmap_size, c.faithful, c.grid_init, c.kernel)
+        # one level at the coarse plane block (faithful: ⌊L_a / h⌋ vertices per axis)
+        sizes = plane_sizes(self.extent, c.plane_block_coarse, c.plane_block_coarse, 1, c.faithful)
+        self.planes = TriPlaneEncoder(sizes, c.feature_dim, c.faithful, c.plane_init_std, c.kernel)
+        gd, h = self.gamma.out_dim, c.hidden_dim
+        self.sdf_net = grid_decoder(self.grid.out_dim + self.planes.out_dim + gd, h, 1)
+        self.rgb_net = grid_decoder(gd + self.grid.out_dim, h, 3)
+
+    def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
+        gam = self.gamma(p)
+        fg = self.grid(p)
+        s = self.sdf_net(torch.cat([fg, self.planes(p), gam], dim=-1))[:, 0]
+        if not need_rgb:
+            return FieldOutput(s, None)
+        return FieldOutput(s, self.rgb_net(torch.cat([gam, fg], dim=-1)))
+
+
+@ENCODINGS.register("dense+tri", help="hybrid: dense grid + one coarse tri-plane level (geometry), grid (colour)")
+class DenseTriField(_HybridField):
+    """Hybrid (Dense+Tri)."""
+
+
+@ENCODINGS.register("hash+tri", help="hybrid: hash grid + one coarse tri-plane level (geometry), grid (colour)")
+class HashTriField(_HybridField):
+    """Hybrid (Hash+Tri)."""
+
+    hashed = True
+
+
+def _validate(cfg: FieldConfig, bounds: np.ndarray) -> np.ndarray:
+    b = np.asarray(bounds, dtype=np.float64)
+    if b.shape != (3, 2) or not np.all(np.isfinite(b)) or not np.all(b[:, 1] > b[:, 0]):
+        raise ConfigError(f"field bounds: expected a finite (3,2) array [[xmin,xmax],[ymin,ymax],[zmin,zmax]] "
+                          f"with max > min, got {np.asarray(bounds).tolist()}")
+    if cfg.encoding not in ENCODINGS:
+        raise ConfigError(f"field.encoding: {ENCODINGS.unknown_message(cfg.encoding)}")
+    for key in ("levels", "feature_dim", "hidden_dim", "mlp_width", "mlp_depth"):
+        if int(getattr(cfg, key)) < 1:
+            raise ConfigError(f"field.{key}: expected a positive integer, got {getattr(cfg, key)!r}")
+    for key in ("block_coarse", "block_fine", "app_block_coarse", "app_block_fine", "plane_block_coarse",
+                "truncation"):
+        if not float(getattr(cfg, key)) > 0:
+            raise ConfigError(f"field.{key}: expected a positive length in metres, got {getattr(cfg, key)!r}")
+    if not 1 <= cfg.log2_hashmap_size <= 30:
+        raise ConfigError(f"field.log2_hashmap_size: expected 1..30, got {cfg.log2_hashmap_size}")
+    for key, enum_t in (("coupling", Coupling), ("kernel", KernelChoice)):
+        try:
+            enum_t(getattr(cfg, key))
+        except ValueError:
+            raise ConfigError(f"field.{key}: {getattr(cfg, key)!r} is not one of "
+                              f"{', '.join(e.value for e in enum_t)}") from None
+    return b
+
+
+def build_field(cfg: FieldConfig, bounds: np.ndarray) -> Field:
+    """Build the representation ``cfg.encoding`` over the box ``bounds`` ((3,2) metres)."""
+    b = _validate(cfg, bounds)
+    return ENCODINGS.get(cfg.encoding)(cfg, b)
