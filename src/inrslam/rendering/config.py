@@ -1,0 +1,88 @@
+"""Typed options of the rendering package: rendering function G, ray sampling, losses.
+
+Defaults are the `paper` preset (Hua & Wang, CVPR 2024, supplementary + system spec) with the bugs of spec §13
+fixed; `faithful` values are noted per field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+
+class NormalsMethod(str, Enum):
+    """How SDF gradients are obtained for renderers that need them (NeuS)."""
+
+    AUTOGRAD = "autograd"  # exact gradient, differentiable (create_graph) so the loss trains the field through it
+    AUTOGRAD_DETACHED = "autograd_detached"  # exact gradient, treated as a constant (as the reference code)
+    FINITE_DIFFERENCE = "finite_difference"  # central differences, 6 extra field queries, first-order autograd only
+
+
+class NerfActivation(str, Enum):
+    """Map from the field's raw scalar to a volume density (1/m) for the plain `nerf` renderer."""
+
+    SOFTPLUS = "softplus"
+    RELU = "relu"
+
+
+class SamplingVariant(str, Enum):
+    """Depth-guided sampling layout (spec §5.1 / §7.8)."""
+
+    NONE = "none"  # n_free samples on [near, far_factor*D] + n_surface samples in D +- band*T
+    SAMPLING = "sampling"  # 'sampling variant' of supp. Table 3: all n_free+n_surface samples on [near, far_factor*D]
+
+
+class LossReduction(str, Enum):
+    """How per-sample SDF errors are averaged (spec §6 vs supplementary Eqs. (3), (5))."""
+
+    PER_RAY = "per_ray"  # mean over the masked samples of each ray, then mean over rays having such samples (Eqs.)
+    GLOBAL = "global"  # one mean over all masked samples of the batch (the reference code)
+
+
+@dataclass
+class RenderConfig:
+    """Rendering function G: per-sample SDF -> compositing weights (registry `RENDERERS`)."""
+
+    name: str = "density"  # renderer: direct | density | neus | volsdf | nerf
+    beta: float = 10.0  # density: sharpness beta of alpha = 1 - exp(-beta*sigmoid(-beta*s)), 1/T-units
+    learn_beta: bool = False  # density: optimise beta (the reference code never does, spec §3.11)
+    beta_lr: float = 1e-3  # learning rate of every learnable rendering parameter (beta, inv_s, VolSDF beta)
+    neus_init_log_inv_s: float = 5.0  # NeuS: initial log of the inverse std inv_s (1/m); e^5 = 148/m ~ 7 mm
+    neus_learn_s: bool = True  # NeuS: optimise inv_s (the reference keeps it fixed)
+    neus_normals: NormalsMethod = NormalsMethod.AUTOGRAD  # NeuS: how the SDF gradient is computed
+    neus_fd_eps: float = 0.005  # NeuS: finite-difference step, metres
+    neus_anneal_end: float = 0.0  # NeuS: cos annealing length as a fraction of the run (0 = true cosine from start)
+    volsdf_beta_init: float = 0.01  # VolSDF: initial Laplace scale beta, metres
+    volsdf_learn_beta: bool = True  # VolSDF: optimise beta
+    volsdf_beta_min: float = 1e-4  # VolSDF: lower bound of beta, metres
+    nerf_activation: NerfActivation = NerfActivation.SOFTPLUS  # nerf: raw scalar -> density (1/m)
+    faithful: bool = False  # reproduce the reference code's quirks (direct k=0 fallback, NeuS units/annealing)
+
+
+@dataclass
+class SamplingConfig:
+    """Samples along each ray (spec §5.1) and pixels per image (spec §5.2)."""
+
+    n_free: int = 48  # samples on [near, far_factor * D] for rays with depth
+    n_surface: int = 12  # samples on D +- band*T for rays with depth
+    n_uniform: int = 60  # samples on [near, AABB exit + 0.01] when no ray of the batch has depth
+    near: float = 0.0  # first sample z-depth, metres
+    far_factor: float = 1.2  # free-space samples end at far_factor * D
+    band: float = 1.0  # surface band half-width in units of T (reference code / faithful: 1.5)
+    jitter: bool = True  # stratified jitter of the merged samples (fresh every call)
+    variant: SamplingVariant = SamplingVariant.NONE  # sampling layout variant (spec §7.8)
+    edge_margin: int = 20  # pixels ignored at each image border when sampling tracking pixels
+
+
+@dataclass
+class LossConfig:
+    """Weights and masks of the training loss (spec §6, supplementary Eqs. (1)-(6))."""
+
+    color: float = 5.0  # lambda_p, weight of the colour MSE
+    depth: float = 1.0  # lambda_g, weight of the depth MSE (rays with depth)
+    free_space: float = 10.0  # lambda_fs, weight of the free-space SDF term
+    center: float = 50.0  # lambda_c, weight of the SDF term within +-center_band*T of the depth
+    tail: float = 200.0  # lambda_t, weight of the SDF term in the rest of the +-T band
+    center_band: float = 0.4  # half-width of the centre band in units of T
+    free_space_target: float = 1.0  # free-space SDF target, T-units ('loss variant' of spec §7.8: 0.1)
+    reduction: LossReduction = LossReduction.PER_RAY  # averaging of the SDF terms

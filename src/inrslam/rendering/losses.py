@@ -1,0 +1,114 @@
+"""Training losses (spec §6; supplementary Eqs. (1)-(6), Hua & Wang CVPR 2024; masks after ESLAM).
+
+    L = λ_p L_p + λ_g L_g + λ_fs L_fs + λ_c L_c + λ_t L_t
+
+L_p: colour MSE over all rays and channels; L_g: depth MSE over rays with D > 0 (Eq. 1).
+Per sample i of a ray with depth D (T = truncation, metres; s in T-units; z z-depth, metres):
+    front (free space)  z < D - T                       e = s - target (target 1 T-unit; 0.1 = 'loss variant')
+    centre              |z - D| < center_band·T         e = z + s·T - D  (Eq. 2)
+    tail                |z - D| <= T and not centre     e = z + s·T - D
+    (behind, z > D + T: unsupervised)
+Reduction: `per_ray` = mean of e² over each ray's masked samples, then mean over the rays having such samples
+(Eqs. 3, 5); `global` = mean of e² over every masked sample of the batch (the reference code, spec §13.16).
+Empty sets contribute exactly 0 (never NaN).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from inrslam.rendering.config import LossConfig, LossReduction
+from inrslam.rendering.render import RenderOutput
+
+
+def safe_mean(values: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Mean of `values` over `mask` (all if None); 0 for an empty selection, non-selected entries never leak NaN."""
+    if mask is None:
+        return values.sum() / max(values.numel(), 1)
+    mask = mask.expand_as(values)
+    return torch.where(mask, values, torch.zeros_like(values)).sum() / mask.sum().clamp_min(1)
+
+
+def masked_sample_mean(values: Tensor, mask: Tensor, reduction: LossReduction) -> Tensor:
+    """Reduce per-sample values over a (R, S) mask.
+
+    Args:
+        values: (R, S); mask: (R, S) bool.
+        reduction: `per_ray` -> (1/|R'|) Σ_{r∈R'} (1/|P_r|) Σ_{i∈P_r} v_ri over rays R' with a non-empty P_r;
+            `global` -> Σ v over the mask / |mask|.
+    Returns:
+        scalar (0 if the mask is empty).
+
+    Example: v = [[1, 3, 8]], [[5, 5, 5]] with mask [[1, 1, 0], [1, 0, 0]] -> per_ray (2 + 5)/2 = 3.5,
+    global (1 + 3 + 5)/3 = 3.
+    """
+    v = torch.where(mask, values, torch.zeros_like(values))
+    if LossReduction(reduction) is LossReduction.GLOBAL:
+        return v.sum() / mask.sum().clamp_min(1)
+    count = mask.sum(dim=-1)
+    per_ray = v.sum(dim=-1) / count.clamp_min(1)
+    return per_ray.sum() / (count > 0).sum().clamp_min(1)
+
+
+def sdf_masks(z: Tensor, target_depth: Tensor, truncation: float, center_band: float = 0.4
+              ) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-sample masks (front, centre, tail), all False on rays without depth.
+
+    Args:
+        z: (R, S) metres; target_depth: (R,) metres (0 = none); truncation: T metres; center_band: in units of T.
+    Returns:
+        front z < D - T; centre |z - D| < center_band·T; tail |z - D| <= T and not centre; each (R, S) bool.
+    """
+    d = target_depth[:, None]
+    valid = d > 0
+    diff = z - d
+    front = (diff < -truncation) & valid
+    center = (diff.abs() < center_band * truncation) & valid
+    tail = (diff.abs() <= truncation) & ~center & valid
+    return front, center, tail
+
+
+def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, cfg: LossConfig,
+                   truncation: float) -> dict[str, Tensor]:
+    """All loss terms of a batch of rendered rays (see module docstring for the equations).
+
+    Args:
+        out: `render_rays` output (uses rgb, depth, sdf, z).
+        target_rgb: (R, 3) in [0, 1]; target_depth: (R,) metres, 0 = none.
+        cfg: weights, masks, reduction; truncation: T, metres.
+    Returns:
+        dict with scalar tensors 'color', 'depth', 'free_space', 'center', 'tail' (unweighted) and 'total'
+        (weighted sum).
+    """
+    reduction = LossReduction(cfg.reduction)
+    valid = target_depth > 0
+    color = safe_mean((out.rgb - target_rgb) ** 2)
+    depth = safe_mean((out.depth - target_depth) ** 2, valid)
+    front, center, tail = sdf_masks(out.z, target_depth, truncation, cfg.center_band)
+    fs_err = (out.sdf - cfg.free_space_target) ** 2
+    sdf_err = (out.z + out.sdf * truncation - target_depth[:, None]) ** 2
+    terms = {
+        "color": color,
+        "depth": depth,
+        "free_space": masked_sample_mean(fs_err, front, reduction),
+        "center": masked_sample_mean(sdf_err, center, reduction),
+        "tail": masked_sample_mean(sdf_err, tail, reduction),
+    }
+    terms["total"] = (cfg.color * terms["color"] + cfg.depth * terms["depth"] + cfg.free_space * terms["free_space"]
+                      + cfg.center * terms["center"] + cfg.tail * terms["tail"])
+    return terms
+
+
+def depth_l1(depth: Tensor, target_depth: Tensor) -> Tensor:
+    """Mean |D̂ - D| over rays with D > 0 (metres; 0 if none) — the logged 'Depth L1' (spec §6, §8.2)."""
+    return safe_mean((depth - target_depth).abs(), target_depth > 0)
+
+
+def psnr_from_mse(mse: Tensor | float) -> Tensor | float:
+    """PSNR = -10 log10(MSE) in dB for images in [0, 1] (MSE clamped to >= 1e-10)."""
+    if isinstance(mse, Tensor):
+        return -10.0 * torch.log10(mse.clamp_min(1e-10))
+    return -10.0 * math.log10(max(float(mse), 1e-10))

@@ -1,0 +1,146 @@
+"""Ray sampling (depth-guided, spec §5.1) and pixel sampling (spec §5.2).
+
+Sample positions are z-depths along the unnormalised camera-z-1 directions (metres), so the point of sample z is
+o + z·d and a measured depth D compares directly with z.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from inrslam.rendering.config import SamplingConfig, SamplingVariant
+
+
+def aabb_exit(origins: Tensor, dirs: Tensor, bounds: Tensor) -> Tensor:
+    """Ray parameter where each ray leaves an axis-aligned box (slab method).
+
+    t_exit = min over axes of max((b_min - o)/d, (b_max - o)/d); axes with d = 0 never bound the ray.
+
+    Args:
+        origins: (R, 3) metres; dirs: (R, 3) (any length; t is in units of |d|); bounds: (3, 2) [[min, max], ...].
+    Returns:
+        (R,) exit parameter (negative if the box lies behind the origin; +inf if every d component is 0).
+
+    Example: o = 0, d = (0, 0, 1), box [-1, 1]^2 x [-1, 3] -> 3.
+    """
+    lo, hi = bounds[:, 0], bounds[:, 1]
+    safe = torch.where(dirs == 0, torch.ones_like(dirs), dirs)
+    t1 = (lo - origins) / safe
+    t2 = (hi - origins) / safe
+    t_far = torch.maximum(t1, t2)
+    t_far = torch.where(dirs == 0, torch.full_like(t_far, float("inf")), t_far)
+    return t_far.min(dim=-1).values
+
+
+def stratified_jitter(z: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    """Jitter sorted samples within their strata (spec §5.1).
+
+    With mid-points m_k = (z_k + z_{k+1})/2: lower = [z_0, m_0, ..., m_{S-2}], upper = [m_0, ..., m_{S-2}, z_{S-1}],
+    z'_k = lower_k + u_k (upper_k - lower_k), u_k ~ U(0, 1). The result stays sorted and inside [z_0, z_{S-1}].
+
+    Args:
+        z: (R, S) sorted; generator: torch RNG on z's device (None = global RNG).
+    Returns:
+        (R, S) jittered samples.
+    """
+    mid = 0.5 * (z[..., 1:] + z[..., :-1])
+    lower = torch.cat([z[..., :1], mid], dim=-1)
+    upper = torch.cat([mid, z[..., -1:]], dim=-1)
+    u = torch.rand(z.shape, generator=generator, device=z.device, dtype=z.dtype)
+    return lower + u * (upper - lower)
+
+
+def sample_counts(cfg: SamplingConfig) -> tuple[int, int]:
+    """(free-space, surface) sample counts for rays with depth, after the sampling variant (spec §7.8)."""
+    if SamplingVariant(cfg.variant) is SamplingVariant.SAMPLING:
+        return cfg.n_free + cfg.n_surface, 0
+    return cfg.n_free, cfg.n_surface
+
+
+@torch.no_grad()
+def sample_depths(
+    depth: Tensor,
+    dirs: Tensor,
+    origins: Tensor,
+    bounds: Tensor | np.ndarray,
+    cfg: SamplingConfig,
+    truncation: float,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Sample z-depths along rays, guided by the measured depth (spec §5.1; supplementary §1).
+
+    Rays with depth D > 0: `n_free` samples near + (far_factor·D - near)·k/(n_free-1) and `n_surface` samples
+    D - band·T + 2·band·T·k/(n_surface-1) (clamped to >= near), merged and sorted.
+    Rays with D = 0: S samples near + (t_far - near)·k/(S-1), t_far = `aabb_exit` + 0.01 (at least near + 0.01).
+    Then stratified jitter (`cfg.jitter`). No gradient flows through the samples.
+
+    S (same for all rays) = n_free + n_surface when any ray of the batch has depth, else `n_uniform` (e.g. held-out
+    renders without depth).
+
+    Args:
+        depth: (R,) measured z-depth, metres, 0 = none.
+        dirs: (R, 3) world directions (camera z component 1).
+        origins: (R, 3) metres.
+        bounds: (3, 2) scene box, metres.
+        cfg: sampling options; truncation: T, metres.
+        generator: RNG for the jitter (on depth's device).
+    Returns:
+        (R, S) sorted z-depths, metres, dtype of `depth`.
+    """
+    n_free, n_surf = sample_counts(cfg)
+    device, dtype = depth.device, depth.dtype if depth.is_floating_point() else torch.float32
+    depth = depth.to(dtype)
+    has_depth = depth > 0
+    any_depth = bool(has_depth.any())
+    S = n_free + n_surf if any_depth else cfg.n_uniform
+    if S < 2:
+        raise ValueError(f"need at least 2 samples per ray, got {S}")
+    R = depth.shape[0]
+    if R == 0:
+        return depth.new_zeros((0, S))
+    near = float(cfg.near)
+    bounds_t = torch.as_tensor(bounds, dtype=dtype, device=device)
+
+    lin = torch.linspace(0.0, 1.0, S, device=device, dtype=dtype)
+    t_far = (aabb_exit(origins.to(dtype), dirs.to(dtype), bounds_t) + 0.01).clamp_min(near + 0.01)
+    z = near + (t_far[:, None] - near) * lin  # rays without depth
+    if any_depth:
+        d = depth[:, None]
+        parts = [near + (cfg.far_factor * d - near).clamp_min(0.0) * torch.linspace(0, 1, n_free, device=device,
+                                                                                     dtype=dtype)]
+        if n_surf > 0:
+            offs = torch.linspace(-1.0, 1.0, n_surf, device=device, dtype=dtype) * (cfg.band * truncation)
+            parts.append((d + offs).clamp_min(near))
+        z_depth = torch.sort(torch.cat(parts, dim=-1), dim=-1).values
+        z = torch.where(has_depth[:, None], z_depth, z)
+    if cfg.jitter:
+        z = stratified_jitter(z, generator)
+    return z
+
+
+def sample_pixels(
+    height: int,
+    width: int,
+    n: int,
+    edge_margin: int = 0,
+    generator: torch.Generator | None = None,
+    device: torch.device | str | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Draw n distinct pixels uniformly from the image without its `edge_margin`-pixel border (spec §5.2).
+
+    Args:
+        height, width: image size; n: number of pixels; edge_margin: border width, pixels.
+        generator: CPU torch RNG (None = global RNG); device: device of the returned tensors.
+    Returns:
+        u (column), v (row): (n,) int64 with edge_margin <= u < width - edge_margin (same for v).
+    """
+    h, w = height - 2 * edge_margin, width - 2 * edge_margin
+    if h <= 0 or w <= 0:
+        raise ValueError(f"edge_margin {edge_margin} leaves no pixels in a {width}x{height} image")
+    if n > h * w:
+        raise ValueError(f"cannot draw {n} distinct pixels from {h * w} ({width}x{height}, margin {edge_margin})")
+    gen_device = generator.device if generator is not None else "cpu"
+    idx = torch.randperm(h * w, generator=generator, device=gen_device)[:n].to(device or gen_device)
+    return idx % w + edge_margin, torch.div(idx, w, rounding_mode="floor") + edge_margin
