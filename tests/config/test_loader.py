@@ -104,3 +104,11 @@ def test_missing_and_circular_files(tmp_path):
     b.write_text("inherit_from: a.yaml\n")
     with pytest.raises(ConfigError, match="circular"):
         load_config(a)
+
+
+def test_faithful_switch_reaches_every_section():
+    cfg = load_config(preset="paper", overrides=["faithful=true"])
+    assert cfg.field.faithful and cfg.render.faithful and cfg.data.faithful_intrinsics
+    assert cfg.sampling.band == 1.5 and cfg.loss.reduction.value == "global"
+    default = load_config(preset="paper")
+    assert not default.field.faithful and default.sampling.band == 1.0 and default.loss.reduction.value == "per_ray"

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import make_7scenes, make_neuralrgbd, make_replica, make_scannet, make_tum, write_png16, write_rgb
+from data_layouts import make_7scenes, make_neuralrgbd, make_replica, make_scannet, make_tum, write_png16, write_rgb
 
 from inrslam.data import DataConfig, open_folder
 from inrslam.errors import DataError

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import H, W, make_7scenes, make_replica, make_scannet, make_tum
+from data_layouts import H, W, make_7scenes, make_replica, make_scannet, make_tum
 
 from inrslam.data import DATASETS, DataConfig, DatasetView, detect_layout, estimate_bounds, open_dataset, open_folder
 from inrslam.data.bounds import backproject_world
@@ -118,7 +118,7 @@ def test_estimate_bounds_skips_invalid_poses(tmp_path):
 
 
 def test_estimate_bounds_identity_for_invalid_frame0(tmp_path):
-    from conftest import make_neuralrgbd
+    from data_layouts import make_neuralrgbd
 
     lay = make_neuralrgbd(tmp_path, n=2, nan_frame=0)
     ds = DatasetView(open_folder(lay.root, DataConfig(intrinsics=[20, 20, 16, 12])), max_frames=1)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import H, W, green, make_7scenes, make_neuralrgbd, make_replica, make_scannet, make_tum
+from data_layouts import H, W, green, make_7scenes, make_neuralrgbd, make_replica, make_scannet, make_tum
 
 from inrslam.data import DATASETS, DataConfig, Frame, RGBDDataset, open_folder
 from inrslam.data.neuralrgbd import FOCAL

@@ -27,4 +27,21 @@ class RunConfig:
     seed: int = 0  # seed of every random choice (pixels, jitter, initialisation)
     device: str = "auto"  # auto (cuda if available), cpu, cuda, cuda:N
     threads: int = 0  # torch/numba threads (0 = all cores)
-    faithful: bool = False  # reproduce the original code's documented quirks (spec §13) where they affect numbers
+    faithful: bool = False  # reproduce the original code's documented quirks (docs/differences.md) everywhere
+
+    def __post_init__(self):
+        if self.faithful:
+            apply_faithful(self)
+
+
+def apply_faithful(cfg: RunConfig) -> None:
+    """Switch every section to the original code's behaviour (docs/differences.md): [0,1] plane coordinates,
+    sum-of-planes x sum-of-lines TensoRF and the cubic tcnn grid rule; the k = 0 SDF(direct) fallback; ±1.5 T
+    surface band; one global loss mean; floor-divided default intrinsics."""
+    from inrslam.rendering.config import LossReduction
+
+    cfg.field.faithful = True
+    cfg.render.faithful = True
+    cfg.sampling.band = 1.5
+    cfg.loss.reduction = LossReduction.GLOBAL
+    cfg.data.faithful_intrinsics = True

@@ -10,7 +10,7 @@ from torch import Tensor, nn
 from inrslam.data.frame import Intrinsics
 from inrslam.fields import build_field, make_optimizer
 from inrslam.geometry.camera import pixel_directions
-from inrslam.rendering import build_renderer, compute_losses, render_rays, sample_depths
+from inrslam.rendering import build_renderer, compute_losses, render_rays, renderer_param_groups, sample_depths
 
 
 class SceneModel(nn.Module):
@@ -33,9 +33,9 @@ class SceneModel(nn.Module):
     def make_optimizers(self, lr: float) -> dict:
         """Scene optimiser(s): the field's (sparse-aware) Adam, plus Adam on learnable G parameters if any."""
         opts = {"field": make_optimizer(self.field, lr)}
-        g_params = [p for p in self.renderer.parameters() if p.requires_grad]
-        if g_params:
-            opts["render"] = torch.optim.Adam(g_params, lr=getattr(self.cfg.render, "param_lr", 1e-3))
+        groups = renderer_param_groups(self.renderer, self.cfg.render)
+        if groups:
+            opts["render"] = torch.optim.Adam(groups)
         return opts
 
     # -- objective ----------------------------------------------------------------------------------------------

@@ -227,6 +227,7 @@ class SlamSystem:
         cfg = self.cfg.slam
         ft = FrameTensors(frame, self.device)
         self.timestamps[i] = frame.timestamp
+        self.model.renderer.set_progress(i / max(self.n_frames - 1, 1))  # NeuS cosine annealing, if enabled
         if frame.pose_valid and np.all(np.isfinite(frame.c2w)):
             self.gt[i] = frame.c2w
         n_valid_depth = int((ft.depth > 0).sum())

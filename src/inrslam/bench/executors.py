@@ -1,0 +1,222 @@
+"""Executors: run `inrslam.bench.worker.run_one(**call)` for many calls and yield each result as it finishes.
+
+One interface, `Executor.run(calls) -> Iterator[dict]`, registered in `EXECUTORS` (local, ray, slurm). Every
+executor runs the same module-level function, so results do not depend on the executor. Closing the iterator early
+(the sweep was asked to stop) cancels the work not yet finished.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import time
+from collections import deque
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Protocol
+
+from inrslam.bench.worker import run_one
+from inrslam.errors import InrslamError
+from inrslam.registry import Registry
+
+
+@dataclass
+class ExecutorOptions:
+    """Options shared by the executors (each uses the ones that apply to it)."""
+
+    jobs: int = 1  # local: parallel worker processes; ray/slurm: used to derive cpus_per_run when not given
+    folder: str = "."  # sweep output folder (slurm logs go to folder/slurm)
+    address: str | None = None  # ray: cluster address (None = start a local instance unless one is running)
+    partition: str | None = None  # slurm: partition
+    time_min: int = 60  # slurm: time limit per run, minutes
+    cpus_per_run: int | None = None  # CPU cores (= torch threads) per run; None = cores // jobs (slurm: 4)
+    gpus_per_run: float = 0  # ray/slurm: GPUs per run
+    mem_gb: float | None = None  # slurm: memory per run
+    cluster: str | None = None  # slurm: submitit cluster; None = auto (slurm), "local" or "debug" for testing
+    poll_s: float | None = None  # slurm: seconds between job-state polls (default 10 on slurm, 0.2 otherwise)
+
+    def threads(self, default: int | None = None) -> int:
+        if self.cpus_per_run:
+            return int(self.cpus_per_run)
+        if default:
+            return default
+        return max(1, (os.cpu_count() or 1) // max(1, self.jobs))
+
+
+class Executor(Protocol):
+    def run(self, calls: list[dict]) -> Iterator[dict]:
+        """Execute `run_one(**call)` for each call; yield its result dict as soon as it is available."""
+
+
+EXECUTORS: Registry[type] = Registry("executor")
+
+
+def make_executor(name: str, options: ExecutorOptions) -> Executor:
+    """Build the executor registered as `name`."""
+    return EXECUTORS.get(name)(options)
+
+
+def failed_result(call: dict, error: str) -> dict:
+    """Result of a call whose worker died or could not report back."""
+    run = call["run"]
+    return {"name": run["name"], "run_dir": str(Path(call["out_dir"]) / run["name"]), "status": "failed",
+            "error": error, "seconds": None, "pid": None}
+
+
+@EXECUTORS.register("local", help="process pool on this machine (spawn, one fresh process per run)")
+class LocalExecutor:
+    """`jobs` spawn processes, a fresh one per run (so per-run peak memory is measured alone).
+
+    A run that kills its process (segfault, out of memory) breaks the pool; the runs in flight are then retried one
+    at a time so the culprit is identified and recorded as failed while the others complete.
+    """
+
+    def __init__(self, options: ExecutorOptions):
+        self.jobs = max(1, int(options.jobs))
+        self.threads = options.threads()
+
+    def run(self, calls: list[dict]) -> Iterator[dict]:
+        ctx = mp.get_context("spawn")
+        queue, suspects = deque(calls), deque()
+        while queue or suspects:
+            isolated = bool(suspects)
+            src, width = (suspects, 1) if isolated else (queue, self.jobs)
+            pool = ProcessPoolExecutor(max_workers=width, mp_context=ctx, max_tasks_per_child=1)
+            inflight: dict = {}
+            try:
+                broken = False
+                while (src or inflight) and not broken:
+                    while src and len(inflight) < width:
+                        call = src.popleft()
+                        inflight[pool.submit(run_one, threads=self.threads, **call)] = call
+                    done, _ = wait(inflight, return_when=FIRST_COMPLETED)
+                    for fut in done:
+                        call = inflight.pop(fut)
+                        try:
+                            res = fut.result()
+                        except BrokenProcessPool:
+                            broken = True
+                            inflight[fut] = call
+                            continue
+                        except Exception as e:  # noqa: BLE001 - e.g. an unpicklable result
+                            res = failed_result(call, f"{type(e).__name__}: {e}")
+                        yield res
+                if broken:
+                    wait(inflight, timeout=60)
+                    lost = []
+                    for fut, call in list(inflight.items()):
+                        del inflight[fut]
+                        if fut.done() and fut.exception() is None:
+                            yield fut.result()  # finished just before the pool broke
+                        else:
+                            lost.append(call)
+                    if len(lost) == 1:
+                        yield failed_result(lost[0], "worker process died (crash, out of memory or killed)")
+                    else:
+                        suspects.extend(lost)
+            finally:
+                if inflight:  # stopped early: do not leave runs going in the background
+                    for p in list(getattr(pool, "_processes", {}).values()):
+                        p.terminate()
+                pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise InrslamError("the ray executor needs Ray: pip install inrslam[ray]") from None
+    return ray
+
+
+@EXECUTORS.register("ray", help="one Ray task per run (ray.init(address) or a local instance)")
+class RayExecutor:
+    """One `@ray.remote(num_cpus, num_gpus)` task per run; uses an initialised Ray, else `ray.init(address)`."""
+
+    def __init__(self, options: ExecutorOptions):
+        _import_ray()  # fail early with the install hint
+        self.options = options
+        self.threads = options.threads()
+
+    def run(self, calls: list[dict]) -> Iterator[dict]:
+        ray = _import_ray()
+        started = False
+        if not ray.is_initialized():
+            ray.init(address=self.options.address, include_dashboard=False, log_to_driver=False)
+            started = True
+        # max_calls=1: a fresh worker process per run, so per-run peak memory is measured alone
+        task = ray.remote(num_cpus=self.threads, num_gpus=self.options.gpus_per_run, max_retries=0,
+                          max_calls=1)(run_one)
+        refs = {task.remote(threads=self.threads, **call): call for call in calls}
+        try:
+            while refs:
+                done, _ = ray.wait(list(refs), num_returns=1)
+                for ref in done:
+                    call = refs.pop(ref)
+                    try:
+                        res = ray.get(ref)
+                    except Exception as e:  # noqa: BLE001 - worker crash, cancellation
+                        res = failed_result(call, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+                    yield res
+        finally:
+            for ref in refs:
+                ray.cancel(ref, force=True)
+            if started:
+                ray.shutdown()
+
+
+def _import_submitit():
+    try:
+        import submitit
+    except ImportError:
+        raise InrslamError("the slurm executor needs submitit: pip install inrslam[slurm]") from None
+    return submitit
+
+
+@EXECUTORS.register("slurm", help="SLURM job array through submitit (cluster='local'/'debug' for testing)")
+class SlurmExecutor:
+    """submitit `AutoExecutor(folder=<out>/slurm)`: one job per run, submitted as an array."""
+
+    def __init__(self, options: ExecutorOptions):
+        _import_submitit()  # fail early with the install hint
+        self.options = options
+        self.threads = options.threads(default=None if options.cpus_per_run else 4)
+
+    def run(self, calls: list[dict]) -> Iterator[dict]:
+        submitit = _import_submitit()
+        o = self.options
+        ex = submitit.AutoExecutor(folder=Path(o.folder) / "slurm", cluster=o.cluster)
+        params = {"timeout_min": int(o.time_min), "cpus_per_task": self.threads, "name": "inrslam-bench"}
+        if o.gpus_per_run:
+            params["gpus_per_node"] = int(o.gpus_per_run)
+        if o.mem_gb:
+            params["mem_gb"] = o.mem_gb
+        if o.partition:
+            params["slurm_partition"] = o.partition
+        ex.update_parameters(**params)
+        with ex.batch():
+            jobs = [(ex.submit(run_one, threads=self.threads, **call), call) for call in calls]
+        poll = o.poll_s if o.poll_s is not None else (10.0 if ex.cluster == "slurm" else 0.2)
+        pending = list(jobs)
+        try:
+            while pending:
+                for job, call in list(pending):
+                    if not job.done():
+                        continue
+                    pending.remove((job, call))
+                    try:
+                        res = job.result()
+                    except Exception as e:  # noqa: BLE001 - job failed, timed out or was cancelled
+                        res = failed_result(call, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+                                                  f" (logs in {Path(o.folder) / 'slurm'})")
+                    yield res
+                if pending:
+                    time.sleep(poll)
+        finally:
+            for job, _ in pending:
+                try:
+                    job.cancel(check=False)
+                except Exception:  # noqa: BLE001 - best effort
+                    pass

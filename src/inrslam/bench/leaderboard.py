@@ -1,0 +1,331 @@
+"""Leaderboards from run directories: collect, aggregate (mean ± std per G x F), mark the best, format.
+
+Reads only what runs wrote (metrics.json, run_info.json, config.yaml, bench.json); never re-runs anything.
+Columns follow the paper's leaderboards (spec §11.1) plus model size: Acc, Comp [cm], Comp [%], ATE [cm],
+PSNR [dB] and Depth L1 [cm] "from processes" (the training-time renders, `psnr_process_db`,
+`depth_l1_process_m`), Track [ms] per frame, Map [ms] per call, Model [MB].
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from inrslam.bench.spec import scene_short_name
+from inrslam.bench.worker import is_complete, read_json
+
+MISSING = "–"
+SKIP_DIRS = {"report", "slurm", "checkpoints", "meshes", "tensorboard"}
+
+
+@dataclass(frozen=True)
+class Column:
+    """One leaderboard column: `metric` (metrics.json key) times `scale`, displayed with `decimals`."""
+
+    key: str
+    title: str
+    metric: str
+    scale: float = 1.0
+    higher_better: bool = False
+    decimals: int = 2
+
+
+COLUMNS: tuple[Column, ...] = (
+    Column("acc_cm", "Acc [cm]", "acc_m", 100.0),
+    Column("comp_cm", "Comp [cm]", "comp_m", 100.0),
+    Column("comp_pct", "Comp [%]", "comp_ratio", 100.0, higher_better=True),
+    Column("ate_cm", "ATE [cm]", "ate_rmse_m", 100.0),
+    Column("psnr_db", "PSNR [dB]", "psnr_process_db", 1.0, higher_better=True),
+    Column("depth_l1_cm", "Depth L1 [cm]", "depth_l1_process_m", 100.0),
+    Column("track_ms", "Track [ms]", "track_ms_per_frame", 1.0, decimals=0),
+    Column("map_ms", "Map [ms]", "map_ms_per_call", 1.0, decimals=0),
+    Column("model_mb", "Model [MB]", "model_size_mb", 1.0),
+)
+COLUMN_BY_KEY = {c.key: c for c in COLUMNS}
+
+# Paper names (spec §0.1); unknown registry names are shown as they are.
+RENDER_LABELS = {"direct": "SDF(direct)", "density": "SDF(density)", "neus": "SDF(surface)", "volsdf": "VolSDF",
+                 "nerf": "NeRF"}
+ENCODING_LABELS = {"mlp": "MLP", "dense": "Dense", "hash": "Sparse (hash)", "triplane": "Tri.", "tensorf": "Fact.",
+                   "dense+tri": "Hybrid (Dense+Tri)", "hash+tri": "Hybrid (Hash+Tri)"}
+
+
+def render_label(name: str) -> str:
+    return RENDER_LABELS.get(name, name)
+
+
+def encoding_label(name: str) -> str:
+    return ENCODING_LABELS.get(name, name)
+
+
+def _order(name: str, labels: dict) -> tuple:
+    keys = list(labels)
+    return (keys.index(name), "") if name in keys else (len(keys), name)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# collecting run directories
+
+
+@dataclass
+class RunRecord:
+    """What one run directory says about itself."""
+
+    run_dir: Path
+    name: str
+    scene: str
+    encoding: str
+    render: str
+    preset: str
+    seed: int | None
+    complete: bool
+    status: str
+    metrics: dict = field(default_factory=dict)
+    config: dict = field(default_factory=dict)
+    error: str | None = None
+
+    def value(self, col: Column) -> float | None:
+        """The column's value for this run (scaled), or None when missing/non-finite."""
+        v = self.metrics.get(col.metric)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            return None
+        return float(v) * col.scale
+
+
+def _is_run_dir(d: Path) -> bool:
+    return any((d / f).is_file() for f in ("run_info.json", "metrics.json", "config.yaml", "bench.json", "error.txt"))
+
+
+def find_run_dirs(runs_dir: str | os.PathLike, exclude: Path | None = None) -> list[Path]:
+    """Run directories under `runs_dir` (itself, or nested at any depth), sorted by path."""
+    root = Path(runs_dir)
+    found = []
+    stack = [root]
+    while stack:
+        d = stack.pop()
+        if exclude is not None and d.resolve() == exclude.resolve():
+            continue
+        if _is_run_dir(d):
+            found.append(d)
+            continue
+        stack += [c for c in d.iterdir() if c.is_dir() and c.name not in SKIP_DIRS and not c.name.startswith(".")]
+    return sorted(found)
+
+
+def read_run(run_dir: str | os.PathLike) -> RunRecord:
+    """RunRecord from one run directory (missing files give empty fields)."""
+    d = Path(run_dir)
+    metrics = read_json(d / "metrics.json") or {}
+    info = read_json(d / "run_info.json") or {}
+    bench = read_json(d / "bench.json") or {}
+    try:
+        config = yaml.safe_load((d / "config.yaml").read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        config = {}
+    data_path = (config.get("data") or {}).get("path") or (info.get("dataset") or {}).get("root") or ""
+    scene = bench.get("scene") or (scene_short_name(str(data_path)) if data_path else d.name)
+    encoding = metrics.get("encoding") or info.get("encoding") or (config.get("field") or {}).get("encoding") or "?"
+    render = metrics.get("render") or info.get("render") or (config.get("render") or {}).get("name") or "?"
+    seed = bench.get("seed", config.get("seed"))
+    err = None
+    if (d / "error.txt").is_file():
+        lines = [ln for ln in (d / "error.txt").read_text().splitlines() if ln.strip()]
+        err = lines[-1] if lines else "error"
+    complete = is_complete(d)
+    status = "complete" if complete else ("failed" if err else info.get("status", "not started"))
+    return RunRecord(run_dir=d, name=d.name, scene=str(scene), encoding=str(encoding), render=str(render),
+                     preset=str(bench.get("preset") or ""), seed=seed, complete=complete, status=status,
+                     metrics=metrics if complete else {}, config=config, error=err)
+
+
+def collect_runs(runs_dir: str | os.PathLike, exclude: Path | None = None) -> list[RunRecord]:
+    """Every run directory under `runs_dir`, complete or not."""
+    return [read_run(d) for d in find_run_dirs(runs_dir, exclude)]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# aggregation
+
+
+@dataclass
+class Row:
+    """One G x F (x preset) row: per-column values over runs, their mean, std and the best flag."""
+
+    render: str
+    encoding: str
+    preset: str
+    runs: list[str]
+    values: dict[str, list[float]]
+    mean: dict[str, float | None] = field(default_factory=dict)
+    std: dict[str, float | None] = field(default_factory=dict)
+    best: dict[str, bool] = field(default_factory=dict)
+
+
+def _mean_std(vals: list[float]) -> tuple[float | None, float | None]:
+    if not vals:
+        return None, None
+    m = sum(vals) / len(vals)
+    if len(vals) < 2:
+        return m, None
+    return m, math.sqrt(sum((v - m) ** 2 for v in vals) / (len(vals) - 1))  # sample std (n-1)
+
+
+def aggregate(records: list[RunRecord], columns: tuple[Column, ...] = COLUMNS) -> list[Row]:
+    """Group complete runs by (render, encoding, preset); mean ± sample std over seeds and scenes; mark bests."""
+    groups: dict[tuple, list[RunRecord]] = {}
+    for r in records:
+        if r.complete:
+            groups.setdefault((r.render, r.encoding, r.preset), []).append(r)
+    rows = []
+    for (ren, enc, preset), recs in sorted(groups.items(), key=lambda kv: (_order(kv[0][0], RENDER_LABELS),
+                                                                         _order(kv[0][1], ENCODING_LABELS), kv[0][2])):
+        values = {c.key: [v for v in (r.value(c) for r in recs) if v is not None] for c in columns}
+        row = Row(render=ren, encoding=enc, preset=preset, runs=sorted(r.name for r in recs), values=values)
+        for c in columns:
+            row.mean[c.key], row.std[c.key] = _mean_std(values[c.key])
+        rows.append(row)
+    mark_best(rows, columns)
+    return rows
+
+
+def mark_best(rows: list[Row], columns: tuple[Column, ...] = COLUMNS) -> None:
+    """Set `row.best[key]` for the row(s) with the best mean of each column (ties all marked)."""
+    for c in columns:
+        means = [r.mean[c.key] for r in rows if r.mean.get(c.key) is not None]
+        target = (max if c.higher_better else min)(means) if means else None
+        for r in rows:
+            m = r.mean.get(c.key)
+            r.best[c.key] = m is not None and target is not None and math.isclose(m, target, rel_tol=1e-12,
+                                                                                     abs_tol=1e-15)
+
+
+def by_scene(records: list[RunRecord]) -> dict[str, list[RunRecord]]:
+    """Records grouped by scene name (sorted)."""
+    out: dict[str, list[RunRecord]] = {}
+    for r in records:
+        out.setdefault(r.scene, []).append(r)
+    return dict(sorted(out.items()))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# formatting
+
+
+def format_cell(row: Row, col: Column, pm: str = " ± ") -> str:
+    """'1.37 ± 0.12' (std only with two or more runs), or '–' when missing."""
+    m = row.mean.get(col.key)
+    if m is None:
+        return MISSING
+    s = row.std.get(col.key)
+    text = f"{m:.{col.decimals}f}"
+    if s is not None:
+        text += f"{pm}{s:.{col.decimals}f}"
+    return text
+
+
+def _show_preset(rows: list[Row]) -> bool:
+    return len({r.preset for r in rows}) > 1
+
+
+def _runs_count(row: Row) -> int:
+    return len(row.runs)
+
+
+def to_markdown(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, title: str | None = None) -> str:
+    """GitHub Markdown table; best per column in bold."""
+    preset = _show_preset(rows)
+    head = ["G", "F"] + (["preset"] if preset else []) + ["runs"] + [
+        c.title + (" ↑" if c.higher_better else " ↓") for c in columns]
+    lines = [f"### {title}", ""] if title else []
+    lines += ["| " + " | ".join(head) + " |", "|" + "|".join(":--" if i < len(head) - len(columns) else "--:"
+                                                             for i in range(len(head))) + "|"]
+    for r in rows:
+        cells = [render_label(r.render), encoding_label(r.encoding)] + ([r.preset] if preset else []) + [
+            str(_runs_count(r))]
+        for c in columns:
+            text = format_cell(r, c)
+            cells.append(f"**{text}**" if r.best.get(c.key) else text)
+        lines.append("| " + " | ".join(cells) + " |")
+    if not rows:
+        lines.append("| " + " | ".join([MISSING] * len(head)) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def to_csv(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, scene: str | None = None) -> str:
+    """CSV: render, encoding, preset, runs, then <key>_mean, <key>_std, <key>_n, <key>_best per column, and `best`
+    (the columns this row is best in, ';'-separated). Missing values are empty cells."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    head = (["scene"] if scene is not None else []) + ["render", "encoding", "preset", "runs"]
+    for c in columns:
+        head += [f"{c.key}_mean", f"{c.key}_std", f"{c.key}_n", f"{c.key}_best"]
+    w.writerow(head + ["best"])
+    for r in rows:
+        line = ([scene] if scene is not None else []) + [r.render, r.encoding, r.preset, len(r.runs)]
+        for c in columns:
+            m, s = r.mean.get(c.key), r.std.get(c.key)
+            line += ["" if m is None else repr(m), "" if s is None else repr(s), len(r.values[c.key]),
+                     int(bool(r.best.get(c.key)))]
+        w.writerow(line + [";".join(c.key for c in columns if r.best.get(c.key))])
+    return buf.getvalue()
+
+
+def _tex_escape(text: str) -> str:
+    for a, b in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#"),
+                 ("$", r"\$"), ("{", r"\{"), ("}", r"\}")):
+        text = text.replace(a, b)
+    return text
+
+
+def to_latex(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, caption: str | None = None) -> str:
+    """booktabs tabular (needs \\usepackage{booktabs}); best per column in \\textbf; G printed once per group."""
+    preset = _show_preset(rows)
+    n_lead = 2 + (1 if preset else 0) + 1
+    spec = "l" * n_lead + "r" * len(columns)
+    head = ["G", "F"] + (["preset"] if preset else []) + ["runs"] + [
+        _tex_escape(c.title) + (r"$\uparrow$" if c.higher_better else r"$\downarrow$") for c in columns]
+    lines = [r"\begin{table}[t]", r"\centering", r"\small"]
+    if caption:
+        lines.append(r"\caption{" + _tex_escape(caption) + "}")
+    lines += [r"\begin{tabular}{" + spec + "}", r"\toprule", " & ".join(head) + r" \\", r"\midrule"]
+    prev = None
+    for r in rows:
+        if prev is not None and r.render != prev:
+            lines.append(r"\midrule")
+        g = _tex_escape(render_label(r.render)) if r.render != prev else ""
+        cells = [g, _tex_escape(encoding_label(r.encoding))] + ([_tex_escape(r.preset)] if preset else []) + [
+            str(len(r.runs))]
+        for c in columns:
+            text = format_cell(r, c, pm=r" $\pm$ ")
+            text = "--" if text == MISSING else text
+            cells.append(r"\textbf{" + text + "}" if r.best.get(c.key) else text)
+        lines.append(" & ".join(cells) + r" \\")
+        prev = r.render
+    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    return "\n".join(lines) + "\n"
+
+
+def to_html(rows: list[Row], columns: tuple[Column, ...] = COLUMNS) -> str:
+    """HTML <table> (best in <b>), for the report page."""
+    import html
+
+    preset = _show_preset(rows)
+    head = ["G", "F"] + (["preset"] if preset else []) + ["runs"] + [
+        c.title + (" ↑" if c.higher_better else " ↓") for c in columns]
+    out = ["<table>", "<tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"]
+    for r in rows:
+        cells = [render_label(r.render), encoding_label(r.encoding)] + ([r.preset] if preset else []) + [
+            str(len(r.runs))]
+        tds = [f"<td>{html.escape(x)}</td>" for x in cells]
+        for c in columns:
+            text = html.escape(format_cell(r, c))
+            tds.append(f"<td class='num'><b>{text}</b></td>" if r.best.get(c.key) else f"<td class='num'>{text}</td>")
+        out.append("<tr>" + "".join(tds) + "</tr>")
+    out.append("</table>")
+    return "\n".join(out)

@@ -1,0 +1,119 @@
+"""`build_report`: leaderboards (Markdown, CSV, LaTeX), plots and an HTML page from a folder of run directories.
+
+    report/
+      leaderboard.{md,csv,tex}            all scenes and seeds: mean ± std per G x F, best per column marked
+      leaderboard_<scene>.{md,csv,tex}    the same per scene (mean ± std over seeds)
+      runs.csv                            one line per run directory: status and the raw metrics.json values
+      plots/*.png, *.svg                  memory-vs-ATE trade-off, per-metric bars, ATE over frames
+      index.html                          tables + PNG plots (relative links), no other external files
+
+Nothing is re-run: only files the runs wrote are read.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import html
+import io
+import os
+from pathlib import Path
+
+from inrslam.bench.leaderboard import (COLUMNS, RunRecord, aggregate, by_scene, collect_runs, to_csv, to_html,
+                                       to_latex, to_markdown)
+from inrslam.bench.plots import plot_ate_over_frames, plot_bars, plot_tradeoff
+from inrslam.bench.spec import sanitize
+from inrslam.bench.worker import read_json
+from inrslam.io.atomic import write_text
+
+RUN_FIELDS = ("name", "scene", "encoding", "render", "preset", "seed", "status", "error")
+METRIC_FIELDS = ("ate_rmse_m", "ate_mean_m", "rpe_trans_m", "rpe_rot_deg", "psnr_db", "ssim", "depth_l1_m",
+                 "psnr_process_db", "depth_l1_process_m", "acc_m", "comp_m", "comp_ratio", "track_ms_per_frame",
+                 "map_ms_per_call", "model_size_mb", "peak_memory_mb", "frames", "wall_time_s")
+
+
+def runs_csv(records: list[RunRecord]) -> str:
+    """One line per run directory with its status and raw metrics.json values (empty when missing)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(RUN_FIELDS + METRIC_FIELDS)
+    for r in records:
+        w.writerow([r.name, r.scene, r.encoding, r.render, r.preset, "" if r.seed is None else r.seed, r.status,
+                    r.error or ""] + ["" if r.metrics.get(k) is None else r.metrics[k] for k in METRIC_FIELDS])
+    return buf.getvalue()
+
+
+def _write_tables(out: Path, stem: str, rows, title: str, scene: str | None = None) -> None:
+    write_text(out / f"{stem}.md", to_markdown(rows, COLUMNS, title=title))
+    write_text(out / f"{stem}.csv", to_csv(rows, COLUMNS, scene=scene))
+    write_text(out / f"{stem}.tex", to_latex(rows, COLUMNS, caption=title))
+
+
+def build_report(runs_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
+    """Aggregate every run directory under `runs_dir` into `out` (default `runs_dir/report`). Returns `out`."""
+    runs_dir = Path(runs_dir)
+    out = Path(out) if out is not None else runs_dir / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    records = collect_runs(runs_dir, exclude=out)
+    complete = [r for r in records if r.complete]
+    scenes = sorted({r.scene for r in complete})
+    seeds = sorted({r.seed for r in complete if r.seed is not None})
+    rows = aggregate(complete)
+    what = f"{len(complete)} runs, {len(scenes)} scene(s), {len(seeds)} seed(s)"
+    _write_tables(out, "leaderboard", rows, f"Leaderboard: mean ± std over scenes and seeds ({what})")
+    scene_rows = {}
+    for scene, recs in by_scene(complete).items():
+        scene_rows[scene] = aggregate(recs)
+        _write_tables(out, f"leaderboard_{sanitize(scene)}", scene_rows[scene],
+                      f"Leaderboard, scene {scene}: mean ± std over seeds", scene=scene)
+    write_text(out / "runs.csv", runs_csv(records))
+    plots_dir = out / "plots"
+    plots = {"tradeoff": plot_tradeoff(rows, plots_dir), "bars": plot_bars(rows, plots_dir),
+             "frames": plot_ate_over_frames(complete, plots_dir)}
+    write_text(out / "index.html", _html(runs_dir, out, records, rows, scene_rows, plots, what))
+    return out
+
+
+_CSS = """body{font-family:system-ui,sans-serif;margin:2em;max-width:1400px;color:#222}
+table{border-collapse:collapse;margin:1em 0;font-size:14px}th,td{border:1px solid #ccc;padding:3px 8px}
+th{background:#f3f3f3}td.num{text-align:right;font-variant-numeric:tabular-nums}
+img{max-width:100%;border:1px solid #eee;margin:0.5em 0}.fail{color:#b00}code{background:#f6f6f6;padding:0 3px}"""
+
+
+def _img(out: Path, paths: list[Path]) -> str:
+    return "\n".join(f"<img src='{html.escape(p.relative_to(out).as_posix())}' alt='{html.escape(p.stem)}'>"
+                     for p in paths if p.suffix == ".png")
+
+
+def _html(runs_dir: Path, out: Path, records, rows, scene_rows: dict, plots: dict, what: str) -> str:
+    e = html.escape
+    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>inrslam leaderboard</title>"
+             f"<style>{_CSS}</style></head><body>",
+             f"<h1>inrslam leaderboard</h1><p>Runs from <code>{e(str(runs_dir))}</code>: {e(what)}. Generated "
+             f"{e(_dt.datetime.now().isoformat(timespec='seconds'))} by <code>inrslam report {e(str(runs_dir))}</code>."
+             " PSNR and Depth L1 are measured on the frames processed during the run (as the paper's leaderboards);"
+             " Track = ms per frame, Map = ms per mapping call; bold = best per column; – = not measured.</p>"]
+    status = read_json(runs_dir / "sweep_status.json")
+    if status:
+        counts = ", ".join(f"{k} {v}" for k, v in (status.get("counts") or {}).items())
+        parts.append(f"<p>Sweep <code>{e(str(status.get('spec', '')))}</code>: state {e(str(status.get('state')))}"
+                     f" ({e(counts)}).</p>")
+    parts += ["<h2>All scenes</h2>", to_html(rows, COLUMNS),
+              "<p>Tables: <a href='leaderboard.md'>Markdown</a>, <a href='leaderboard.csv'>CSV</a>, "
+              "<a href='leaderboard.tex'>LaTeX</a>, <a href='runs.csv'>per-run CSV</a>.</p>"]
+    if plots["tradeoff"]:
+        parts += ["<h2>Memory vs accuracy</h2>", _img(out, plots["tradeoff"])]
+    if plots["bars"]:
+        parts += ["<h2>Metrics per F x G</h2>", _img(out, plots["bars"])]
+    for scene, srows in scene_rows.items():
+        parts += [f"<h2>Scene {e(scene)}</h2>", to_html(srows, COLUMNS)]
+        parts += [_img(out, [p for p in plots["frames"] if p.stem == f"ate_frames_{sanitize(scene)}"])]
+    bad = [r for r in records if not r.complete]
+    if bad:
+        parts.append("<h2>Runs not in the tables</h2><table><tr><th>run</th><th>status</th><th>error</th></tr>")
+        for r in bad:
+            parts.append(f"<tr><td>{e(r.name)}</td><td class='fail'>{e(r.status)}</td>"
+                         f"<td>{e(r.error or '')}</td></tr>")
+        parts.append("</table>")
+    parts.append("</body></html>")
+    return "\n".join(parts) + "\n"

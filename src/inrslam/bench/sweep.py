@@ -1,0 +1,208 @@
+"""`run_sweep`: run every combination of a sweep spec as its own run directory, then build the leaderboard.
+
+    out/
+      sweep_spec.yaml        the spec as given (reproduce with `inrslam bench out/sweep_spec.yaml --out out`)
+      sweep_status.json      per-run status (pending / complete / skipped / failed), rewritten atomically
+      <scene>__<F>__<G>__<preset>__s<seed>/   one run directory each (as `inrslam run`), + bench.json, error.txt
+      report/                leaderboard.{md,csv,tex}, plots, index.html (`build_report`)
+
+Re-running the same command resumes: complete runs are skipped, checkpointed partial runs continue from their
+checkpoint, the others start over.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import yaml
+
+from inrslam.bench.executors import ExecutorOptions, make_executor
+from inrslam.bench.spec import RunSpec, expand, load_spec, validate_runs
+from inrslam.bench.worker import fn_path, has_checkpoint, is_complete
+from inrslam.errors import ConfigError
+from inrslam.io.atomic import write_json, write_text
+
+STATUS_FILE = "sweep_status.json"
+
+
+@dataclass
+class SweepResult:
+    """What a sweep did: one result dict per run name (status, run_dir, error, seconds), the report folder."""
+
+    out: Path
+    runs: list[RunSpec]
+    results: dict[str, dict] = field(default_factory=dict)
+    report: Path | None = None
+    interrupted: bool = False
+    dry_run: bool = False
+
+    def count(self, status: str) -> int:
+        return sum(1 for r in self.results.values() if r.get("status") == status)
+
+    @property
+    def failed(self) -> list[str]:
+        return [n for n, r in self.results.items() if r.get("status") == "failed"]
+
+    def summary(self) -> str:
+        """One line: how many runs completed, were skipped, failed, and where the report is."""
+        n = len(self.runs)
+        if self.dry_run:
+            return (f"bench (dry run): {n} runs in {self.out}: {self.count('pending')} to run, "
+                    f"{self.count('resume')} to resume, {self.count('skipped')} already complete")
+        text = (f"bench: {n} runs in {self.out}: {self.count('complete')} completed, "
+                f"{self.count('skipped')} already complete, {self.count('failed')} failed")
+        if self.count("pending"):
+            text += f", {self.count('pending')} not run (interrupted)"
+        if self.failed:
+            text += f" (see {self.out}/<run>/error.txt)"
+        if self.report:
+            text += f"; report {self.report / 'index.html'}"
+        return text
+
+
+def _now() -> str:
+    return _dt.datetime.now().isoformat(timespec="seconds")
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def config_differences(run_dir: Path, cfg) -> list[str]:
+    """Keys whose value in `run_dir/config.yaml` differs from the resolved `cfg` (keys present in both)."""
+    from inrslam.config.loader import config_to_dict
+
+    try:
+        old = _flatten(yaml.safe_load((run_dir / "config.yaml").read_text()) or {})
+    except (OSError, yaml.YAMLError):
+        return []
+    new = _flatten(config_to_dict(cfg))
+    return [f"{k}: {old[k]!r} -> {new[k]!r}" for k in sorted(set(old) & set(new)) if old[k] != new[k]]
+
+
+def _check_existing(runs: list[RunSpec], cfgs: dict, out: Path) -> None:
+    """Refuse to skip or resume run directories that were made with a different config."""
+    for run in runs:
+        d = out / run.name
+        if run.name in cfgs and (is_complete(d) or has_checkpoint(d)):
+            diff = config_differences(d, cfgs[run.name])
+            if diff:
+                raise ConfigError(f"{d} was made with a different config ({'; '.join(diff[:3])}); "
+                                  "use a new --out folder or delete that run directory")
+
+
+def _write_status(out: Path, res: SweepResult, meta: dict, state: str) -> None:
+    counts = {s: res.count(s) for s in ("pending", "complete", "skipped", "failed")}
+    write_json(out / STATUS_FILE, {**meta, "state": state, "updated": _now(), "total": len(res.runs),
+                                   "counts": counts, "runs": res.results})
+
+
+def _save_spec(spec_arg, sp, out: Path) -> None:
+    if isinstance(spec_arg, (str, os.PathLike)) and Path(sp.source).is_file():
+        text = Path(sp.source).read_text()
+    else:
+        text = yaml.safe_dump(spec_arg if isinstance(spec_arg, dict) else {"source": sp.source}, sort_keys=False)
+    write_text(out / "sweep_spec.yaml", text)
+
+
+def run_sweep(spec, out, jobs: int = 1, executor: str = "local", address: str | None = None,
+              partition: str | None = None, time_min: int = 60, dry_run: bool = False, *,
+              run_fn: str | Callable | None = None, validate: bool = True, report: bool = True,
+              on_result: Callable[[dict], bool | None] | None = None, quiet: bool = False,
+              **executor_options) -> SweepResult:
+    """Run (or resume) a sweep; each combination becomes `out/<run name>/`. Returns a `SweepResult`.
+
+    Args:
+        spec: sweep spec YAML path, shipped spec name (e.g. 'tiny') or dict (see `inrslam.bench.spec`).
+        out: folder holding one run directory per combination.
+        jobs: parallel local processes (local executor); ray/slurm derive cores per run from it.
+        executor: 'local', 'ray' or 'slurm' (registry `EXECUTORS`).
+        address / partition / time_min: Ray address; SLURM partition and time limit per run (minutes).
+        dry_run: only list the runs and what would happen to each (nothing is written).
+        run_fn: module-level function (or 'module:function') doing one run, default the SLAM run (tests inject
+            `inrslam.bench.testing:fake_run`).
+        validate: resolve every run's config up-front with `load_config` (a typo fails before anything runs).
+        report: build the leaderboard at the end (`build_report(out)`).
+        on_result: called with each finished run's result; returning False stops the sweep (remaining runs stay
+            pending; re-running resumes).
+        quiet: do not print the final one-line summary.
+        executor_options: more `ExecutorOptions` (cpus_per_run, gpus_per_run, mem_gb, cluster, poll_s).
+    """
+    from inrslam.bench.report import build_report
+
+    sp = load_spec(spec)
+    runs = expand(sp)
+    out = Path(out)
+    cfgs = validate_runs(runs, sp.source, check_paths=not dry_run) if validate else {}
+    _check_existing(runs, cfgs, out)
+    res = SweepResult(out=out, runs=runs, dry_run=dry_run)
+    todo = []
+    for run in runs:
+        d = out / run.name
+        if is_complete(d):
+            res.results[run.name] = {"name": run.name, "status": "skipped", "run_dir": str(d), "error": None}
+        else:
+            res.results[run.name] = {"name": run.name, "status": "resume" if dry_run and has_checkpoint(d)
+                                     else "pending", "run_dir": str(d), "error": None}
+            todo.append(run)
+    if dry_run:
+        if not quiet:
+            for run in runs:
+                print(f"  {res.results[run.name]['status']:8s} {run.name}")
+            print(res.summary())
+        return res
+
+    options = ExecutorOptions(jobs=jobs, folder=str(out), address=address, partition=partition, time_min=time_min,
+                              **executor_options)
+    ex = make_executor(executor, options)
+    out.mkdir(parents=True, exist_ok=True)
+    _save_spec(spec, sp, out)
+    meta = {"spec": sp.source, "executor": executor, "jobs": jobs, "started": _now()}
+    _write_status(out, res, meta, "running")
+    calls = [{"run": r.to_dict(), "out_dir": str(out), "run_fn": fn_path(run_fn)} for r in todo]
+    state = "finished"
+    stream = ex.run(calls) if calls else iter(())
+    try:
+        for result in stream:
+            _record(out, result)
+            res.results[result["name"]] = result
+            _write_status(out, res, meta, "running")
+            if on_result is not None and on_result(result) is False:
+                res.interrupted, state = True, "interrupted"
+                break
+    except KeyboardInterrupt:
+        res.interrupted = True
+        _write_status(out, res, meta, "interrupted")
+        raise
+    except Exception as e:
+        _write_status(out, res, {**meta, "error": f"{type(e).__name__}: {e}"}, "error")
+        raise
+    finally:
+        close = getattr(stream, "close", None)
+        if close:
+            close()
+    _write_status(out, res, meta, state)
+    if report:
+        res.report = build_report(out)
+    if not quiet:
+        print(res.summary())
+    return res
+
+
+def _record(out: Path, result: dict) -> None:
+    """Make sure a failed run has an error.txt, even when its worker died before writing one."""
+    if result.get("status") != "failed":
+        return
+    err = Path(result.get("run_dir") or out / result["name"]) / "error.txt"
+    if not err.exists():
+        write_text(err, (result.get("error") or "unknown error") + "\n")

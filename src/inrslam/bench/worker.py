@@ -1,0 +1,137 @@
+"""The per-run function every executor calls: `run_one(run, out_dir) -> {status, run_dir, error, ...}`.
+
+It never raises: a failing run writes `<run_dir>/error.txt` (full traceback) and returns status "failed", so one bad
+combination cannot stop a sweep. The SLAM work itself is done by a *run function* `fn(run: dict, run_dir: Path)`,
+by default `slam_run` (fresh `run_slam`, or `resume_slam` when the directory holds a checkpoint). Tests inject a cheap
+one by dotted path (`run_fn="inrslam.bench.testing:fake_run"` or the env var INRSLAM_BENCH_RUN_FN).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Callable
+
+RUN_FN_ENV = "INRSLAM_BENCH_RUN_FN"
+THREADS_ENV = "INRSLAM_BENCH_THREADS"
+DEFAULT_RUN_FN = "inrslam.bench.worker:slam_run"
+CHECKPOINT = "checkpoints/latest.pt"
+
+
+def read_json(path: Path) -> dict | None:
+    """JSON file -> dict, or None when missing/unreadable."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def is_complete(run_dir: str | os.PathLike) -> bool:
+    """True when `run_info.json` says status complete and `metrics.json` exists."""
+    run_dir = Path(run_dir)
+    info = read_json(run_dir / "run_info.json")
+    return bool(info) and info.get("status") == "complete" and (run_dir / "metrics.json").is_file()
+
+
+def has_checkpoint(run_dir: str | os.PathLike) -> bool:
+    """True when a partial run can be resumed (config.yaml + checkpoints/latest.pt)."""
+    run_dir = Path(run_dir)
+    return (run_dir / CHECKPOINT).is_file() and (run_dir / "config.yaml").is_file()
+
+
+def resolve_run_fn(run_fn: str | Callable | None = None) -> Callable:
+    """'pkg.module:function' (or 'pkg.module.function') -> the function; None -> env var or the SLAM run."""
+    if callable(run_fn):
+        return run_fn
+    path = run_fn or os.environ.get(RUN_FN_ENV) or DEFAULT_RUN_FN
+    mod, sep, name = path.partition(":")
+    if not sep:
+        mod, _, name = path.rpartition(".")
+    return getattr(importlib.import_module(mod), name)
+
+
+def fn_path(fn: str | Callable | None) -> str | None:
+    """A module-level function -> its 'module:name' path (strings and None pass through)."""
+    if fn is None or isinstance(fn, str):
+        return fn
+    return f"{fn.__module__}:{fn.__qualname__}"
+
+
+def set_threads(n: int) -> None:
+    """Limit torch / numba / OpenMP threads of this process to `n`."""
+    n = max(1, int(n))
+    os.environ[THREADS_ENV] = str(n)
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = str(n)
+    if "numba" in sys.modules:
+        import numba
+
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    else:
+        os.environ["NUMBA_NUM_THREADS"] = str(n)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(n)
+
+
+def slam_run(run: dict, run_dir: Path) -> dict:
+    """Default run function: resume a checkpointed partial run, else start it over (overwrite)."""
+    import torch
+
+    from inrslam.bench.spec import RunSpec, resolve_config
+    from inrslam import runner as slam
+
+    if os.environ.get(THREADS_ENV):
+        torch.set_num_threads(int(os.environ[THREADS_ENV]))
+    if has_checkpoint(run_dir):
+        slam.resume_slam(run_dir, progress=None)
+        return {"resumed": True}
+    cfg = resolve_config(RunSpec.from_dict(run))
+    slam.run_slam(cfg, run_dir, progress=None, overwrite=True)
+    return {"resumed": False}
+
+
+def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | None = None) -> dict:
+    """Run one sweep combination into `out_dir/run['name']`; never raises.
+
+    Returns {name, status ("complete" | "skipped" | "failed"), run_dir, error (one line or None), seconds, pid}.
+    """
+    from inrslam.io.atomic import write_json, write_text
+
+    run_dir = Path(out_dir) / run["name"]
+    result = {"name": run["name"], "run_dir": str(run_dir), "error": None, "pid": os.getpid(), "seconds": 0.0}
+    if is_complete(run_dir):
+        return {**result, "status": "skipped"}
+    t0 = time.perf_counter()
+    torch_threads = sys.modules["torch"].get_num_threads() if "torch" in sys.modules else None  # in-process runs
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "error.txt").unlink(missing_ok=True)
+        write_json(run_dir / "bench.json", run)
+        set_threads(threads or os.cpu_count() or 1)
+        extra = resolve_run_fn(run_fn)(run, run_dir)
+        if not is_complete(run_dir):
+            info = read_json(run_dir / "run_info.json") or {}
+            raise RuntimeError(f"the run function returned but {run_dir} is not complete "
+                               f"(run_info status {info.get('status')!r}, metrics.json "
+                               f"{'present' if (run_dir / 'metrics.json').is_file() else 'missing'})")
+        result.update(extra if isinstance(extra, dict) else {})
+        result["status"] = "complete"
+    except BaseException as e:  # noqa: BLE001 - a sweep records every failure, including KeyboardInterrupt in a worker
+        tb = traceback.format_exc()
+        try:
+            write_text(run_dir / "error.txt", tb)
+        except OSError:
+            pass
+        result.update(status="failed", error=f"{type(e).__name__}: {e}".splitlines()[0][:500])
+        if isinstance(e, KeyboardInterrupt):
+            raise
+    finally:
+        if torch_threads is not None:
+            sys.modules["torch"].set_num_threads(torch_threads)
+    result["seconds"] = time.perf_counter() - t0
+    return result

@@ -1,0 +1,167 @@
+"""Leaderboards from hand-made run directories: aggregation, best marking, formats, plots, HTML."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import statistics
+
+import pytest
+
+from inrslam.bench.leaderboard import COLUMN_BY_KEY, aggregate, collect_runs, to_csv, to_latex, to_markdown
+from inrslam.bench.plots import ate_over_frames
+from inrslam.bench.report import build_report
+from inrslam.bench.testing import write_fake_run
+
+
+def M(ate_cm, psnr, model_mb, acc_cm=None, **extra):
+    """metrics.json content in SI units (as runs write them)."""
+    m = {"ate_rmse_m": ate_cm / 100, "psnr_process_db": psnr, "model_size_mb": model_mb,
+         "comp_m": 0.05, "comp_ratio": 0.8, "depth_l1_process_m": 0.02, "track_ms_per_frame": 200.0,
+         "map_ms_per_call": 400.0}
+    if acc_cm is not None:
+        m["acc_m"] = acc_cm / 100
+    m.update(extra)
+    return m
+
+
+@pytest.fixture
+def runs(tmp_path):
+    """dense/density on 2 scenes x 2 seeds, hash/density on 1 scene, dense/direct on 1 scene, + 2 broken runs."""
+    root = tmp_path / "runs"
+    metrics = {
+        ("room", "dense", "density", 0): M(1.0, 25.0, 40.0, acc_cm=2.0),
+        ("room", "dense", "density", 1): M(2.0, 26.0, 40.0, acc_cm=3.0),
+        ("thin", "dense", "density", 0): M(4.0, 27.0, 40.0, acc_cm=4.0),
+        ("thin", "dense", "density", 1): M(5.0, 28.0, 40.0, acc_cm=5.0),
+        ("room", "hash", "density", 0): M(1.5, 30.0, 0.5),  # no acc: shows as missing
+        ("room", "dense", "direct", 0): M(0.5, 24.0, 40.0, acc_cm=1.0),
+    }
+    for (scene, enc, ren, seed), m in metrics.items():
+        write_fake_run(root / f"{scene}__{enc}__{ren}__paper__s{seed}", enc, ren, scene, seed, metrics=m,
+                       preset="paper", frames=12)
+    write_fake_run(root / "room__mlp__density__paper__s0", "mlp", "density", "room", 0, metrics=M(9, 9, 9),
+                   status="running")  # interrupted: not in the tables
+    bad = root / "room__tensorf__density__paper__s0"
+    bad.mkdir(parents=True)
+    (bad / "error.txt").write_text("Traceback ...\nRuntimeError: out of memory\n")
+    return root, metrics
+
+
+def test_collect_and_aggregate_mean_std(runs):
+    root, metrics = runs
+    recs = collect_runs(root)
+    assert len(recs) == 8
+    assert sum(r.complete for r in recs) == 6
+    failed = next(r for r in recs if r.name.startswith("room__tensorf"))
+    assert failed.status == "failed" and failed.error == "RuntimeError: out of memory"
+    rows = aggregate(recs)
+    assert [(r.render, r.encoding) for r in rows] == [("direct", "dense"), ("density", "dense"), ("density", "hash")]
+    dd = rows[1]
+    ates = [metrics[k]["ate_rmse_m"] * 100 for k in metrics if k[1:3] == ("dense", "density")]
+    assert len(dd.runs) == 4
+    assert dd.mean["ate_cm"] == pytest.approx(statistics.mean(ates))
+    assert dd.std["ate_cm"] == pytest.approx(statistics.stdev(ates))
+    assert dd.mean["psnr_db"] == pytest.approx(26.5)
+    hash_row = rows[2]
+    assert hash_row.mean["acc_cm"] is None and hash_row.std["ate_cm"] is None  # missing metric; single run
+    assert hash_row.mean["model_mb"] == pytest.approx(0.5)
+
+
+def test_best_marking_respects_direction(runs):
+    rows = aggregate(collect_runs(runs[0]))
+    best = {k: [(r.render, r.encoding) for r in rows if r.best[k]] for k in COLUMN_BY_KEY}
+    assert best["ate_cm"] == [("direct", "dense")]  # lower is better
+    assert best["psnr_db"] == [("density", "hash")]  # higher is better
+    assert best["model_mb"] == [("density", "hash")]
+    assert best["acc_cm"] == [("direct", "dense")]
+    assert len(best["comp_pct"]) == 3  # tie: all marked
+
+
+def test_table_formats(runs):
+    rows = aggregate(collect_runs(runs[0]))
+    md = to_markdown(rows)
+    assert "| SDF(direct) | Dense | 1 | **1.00** |" in md  # acc 1 cm best
+    assert "3.00 ± 1.83" in md  # dense/density ATE over 4 runs: mean 3, sample std 1.83
+    assert "| SDF(density) | Sparse (hash) | 1 | – |" in md
+    tex = to_latex(rows)
+    assert r"\textbf{0.50}" in tex and r"3.00 $\pm$ 1.83" in tex and r"\begin{tabular}" in tex
+    assert tex.count(r"\midrule") == 2  # header + one G change
+    table = list(csv.DictReader(io.StringIO(to_csv(rows))))
+    assert len(table) == 3
+    h = table[2]
+    assert (h["render"], h["encoding"], h["acc_cm_mean"], h["acc_cm_n"]) == ("density", "hash", "", "0")
+    assert h["psnr_db_best"] == "1" and "psnr_db" in h["best"].split(";") and "model_mb" in h["best"].split(";")
+    assert table[0]["ate_cm_best"] == "1" and table[1]["ate_cm_best"] == "0"
+
+
+def test_build_report_writes_everything_and_values_match_metrics(runs, tmp_path):
+    root, metrics = runs
+    out = build_report(root)
+    assert out == root / "report"
+    for stem in ("leaderboard", "leaderboard_room", "leaderboard_thin"):
+        for ext in ("md", "csv", "tex"):
+            assert (out / f"{stem}.{ext}").stat().st_size > 0
+    plots = out / "plots"
+    for stem in ("tradeoff_memory_ate", "bars_ate_cm", "bars_psnr_db", "bars_model_mb", "ate_frames_room",
+                 "ate_frames_thin"):
+        for ext in ("png", "svg"):
+            assert (plots / f"{stem}.{ext}").stat().st_size > 1000, stem
+    assert (plots / "tradeoff_memory_ate.png").read_bytes()[:4] == b"\x89PNG"
+    # per-scene table of a single-run group equals that run's metrics.json exactly
+    room = {(r["render"], r["encoding"]): r for r in csv.DictReader(open(out / "leaderboard_room.csv"))}
+    for (scene, enc, ren, seed), m in metrics.items():
+        if scene == "room" and seed == 0 and enc == "hash":
+            row = room[(ren, enc)]
+            assert float(row["ate_cm_mean"]) == m["ate_rmse_m"] * 100
+            assert float(row["psnr_db_mean"]) == m["psnr_process_db"]
+            assert float(row["model_mb_mean"]) == m["model_size_mb"]
+            assert float(row["track_ms_mean"]) == m["track_ms_per_frame"]
+    runs_table = list(csv.DictReader(open(out / "runs.csv")))
+    assert len(runs_table) == 8
+    html = (out / "index.html").read_text()
+    assert "<img src='plots/tradeoff_memory_ate.png'" in html and "plots/ate_frames_thin.png" in html
+    assert "RuntimeError: out of memory" in html and "room__mlp__density__paper__s0" in html
+    assert "http" not in html.replace("https://", "")  # no external resources
+    # a second report elsewhere reads the same runs, never the report folder itself
+    out2 = build_report(root, tmp_path / "elsewhere")
+    assert (out2 / "leaderboard.csv").read_text() == (out / "leaderboard.csv").read_text()
+
+
+def test_report_with_presets_and_no_complete_runs(tmp_path):
+    root = tmp_path / "r"
+    write_fake_run(root / "a", "dense", "density", "room", 0, preset="paper")
+    write_fake_run(root / "b", "dense", "density", "room", 0, preset="quick")
+    rows = aggregate(collect_runs(root))
+    assert [r.preset for r in rows] == ["paper", "quick"]
+    assert "| preset |" in to_markdown(rows)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    out = build_report(empty)
+    assert "| – |" in (out / "leaderboard.md").read_text()
+    assert not any((out / "plots").glob("*.png")) if (out / "plots").exists() else True
+
+
+def test_ate_over_frames_matches_rmse_of_alignment(tmp_path):
+    d = write_fake_run(tmp_path / "run", "dense", "density", "room", 0, frames=30, noise=0.02)
+    x, e = ate_over_frames(d)
+    assert list(x) == list(range(30))
+    from inrslam.eval.trajectory import ate
+    from inrslam.io.trajectory import read_tum
+
+    _, est = read_tum(d / "trajectory.txt")
+    _, gt = read_tum(d / "trajectory_gt.txt")
+    assert math.sqrt((e ** 2).mean()) == pytest.approx(ate(est, gt, "se3")["rmse"])
+    assert ate_over_frames(tmp_path / "nothing") is None
+
+
+def test_ate_over_frames_fallback_without_eval_package(tmp_path, monkeypatch):
+    import sys
+
+    d = write_fake_run(tmp_path / "run", "dense", "density", "room", 0, frames=20, noise=0.03)
+    x_ref, e_ref = ate_over_frames(d)
+    monkeypatch.setitem(sys.modules, "inrslam.eval.trajectory", None)  # import now raises ImportError
+    x, e = ate_over_frames(d)
+    assert list(x) == list(x_ref)
+    assert e == pytest.approx(e_ref, abs=1e-9)
