@@ -59,7 +59,7 @@ def map_frame(model, optimizers: dict, store, kf_c2w: Tensor, cur_c2w: Tensor, c
             valid = d > 0
             res.psnr.append(-10 * math.log10(max(mse, 1e-12)))
             res.depth_l1.append(float((out.depth[valid] - d[valid]).abs().mean()) if valid.any() else float("nan"))
-            res.losses.append(float(losses["total"]))
+            res.losses.append(float(losses["total"].detach()))
     if do_ba:
         with torch.no_grad():
             mats = torch.cat([all_c2w[:1], poses.matrices()])
@@ -83,5 +83,5 @@ def initialise(model, optimizers: dict, frame_rays, iters: int, n_pixels: int, g
         losses["total"].backward()
         for opt in optimizers.values():
             opt.step()
-        hist.append(float(losses["total"]))
+        hist.append(float(losses["total"].detach()))
     return hist
