@@ -16,6 +16,8 @@ from pathlib import Path
 
 from inrslam.errors import InrslamError
 
+TRAJ_MAX_DIFF = 0.02  # s, default `--max-diff` of `inrslam eval --traj/--gt`
+
 
 def _registry_help() -> tuple[str, str]:
     from inrslam.fields.registry import ENCODINGS
@@ -66,13 +68,17 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("run_dir", nargs="?", help="run directory to (re)evaluate")
     e.add_argument("--traj", help="estimated trajectory (TUM format)")
     e.add_argument("--gt", help="ground-truth trajectory (TUM format)")
-    e.add_argument("--align", default="se3", choices=["se3", "sim3", "none"], help="ATE alignment (default se3)")
-    e.add_argument("--max-diff", type=float, default=0.02, help="timestamp association tolerance in seconds")
+    e.add_argument("--align", default=None, choices=["se3", "sim3", "none"],
+                   help="ATE alignment (default: the run's eval.align for RUN_DIR, se3 for --traj)")
+    e.add_argument("--max-diff", type=float, default=None,
+                   help="timestamp association tolerance in seconds (default: the run's eval.max_time_diff for "
+                        f"RUN_DIR, {TRAJ_MAX_DIFF} for --traj)")
     e.add_argument("--mesh", help="reconstructed mesh (PLY/OBJ)")
     e.add_argument("--gt-mesh", help="ground-truth mesh")
     e.add_argument("--cameras", help="GT camera poses (TUM file) for frustum + occlusion culling")
     e.add_argument("--intrinsics", help="fx,fy,cx,cy,width,height of the culling cameras")
-    e.add_argument("--icp", action="store_true", help="ICP-align the reconstruction first (off by default)")
+    e.add_argument("--icp", action="store_true", default=None,
+                   help="ICP-align the reconstruction first (default: the run's eval.icp for RUN_DIR, off for --mesh)")
     e.add_argument("--json", action="store_true", help="print JSON instead of a table")
 
     b = sub.add_parser("bench", help="run a sweep of F x G x scenes and build the leaderboard")
@@ -100,6 +106,11 @@ def _run_command(args) -> int:
     console = Console(stderr=False)
     progress_cb, finish = _progress(console, quiet=args.quiet)
     if args.resume:
+        given = [f"--{k.replace('_', '-')}" for k in ("data", "out", "encoding", "render", "max_frames", "config",
+                                                      "dataset", "device", "seed") if getattr(args, k) is not None]
+        if given or args.overrides:
+            raise InrslamError(f"inrslam run --resume continues a run with its own config.yaml; do not combine it "
+                               f"with {', '.join(given + list(args.overrides))}")
         run_dir = resume_slam(args.resume, progress=progress_cb)
     else:
         if not args.out:
@@ -111,8 +122,6 @@ def _run_command(args) -> int:
             val = getattr(args, flag)
             if val is not None:
                 ov.append(f"{key}={val}")
-        if args.quiet:
-            ov.append("output.quiet=true")
         cfg = load_config(args.config, preset=args.preset, overrides=ov)
         _check_registry_names(cfg)
         run_dir = run_slam(cfg, args.out, progress=progress_cb, overwrite=args.overwrite)
@@ -219,11 +228,12 @@ def _eval_command(args) -> int:
 
     console = Console()
     if args.run_dir:
-        metrics = ev.evaluate_run(args.run_dir)
+        metrics = ev.evaluate_run(args.run_dir, _run_eval_config(args))
     elif args.traj or args.gt:
         if not (args.traj and args.gt):
             raise InrslamError("inrslam eval: --traj and --gt go together")
-        metrics = ev.eval_trajectory_files(args.traj, args.gt, align=args.align, max_diff=args.max_diff)
+        metrics = ev.eval_trajectory_files(args.traj, args.gt, align=args.align or "se3",
+                                           max_diff=TRAJ_MAX_DIFF if args.max_diff is None else args.max_diff)
     elif args.mesh or args.gt_mesh:
         if not (args.mesh and args.gt_mesh):
             raise InrslamError("inrslam eval: --mesh and --gt-mesh go together")
@@ -235,7 +245,8 @@ def _eval_command(args) -> int:
             from inrslam.data.frame import Intrinsics
 
             intr = Intrinsics(vals[0], vals[1], vals[2], vals[3], int(vals[4]), int(vals[5]))
-        metrics = ev.eval_mesh_files(args.mesh, args.gt_mesh, cameras_path=args.cameras, intrinsics=intr, icp=args.icp)
+        metrics = ev.eval_mesh_files(args.mesh, args.gt_mesh, cameras_path=args.cameras, intrinsics=intr,
+                                     icp=bool(args.icp))
     else:
         raise InrslamError("inrslam eval: give a RUN_DIR, or --traj/--gt, or --mesh/--gt-mesh")
     if args.json:
@@ -243,6 +254,26 @@ def _eval_command(args) -> int:
     else:
         console.print(ev.format_table(metrics))
     return 0
+
+
+def _run_eval_config(args):
+    """Evaluation protocol of `inrslam eval RUN_DIR`: the run's own `eval` section (RUN_DIR/config.yaml, resolved
+    without a preset, as it was written), or the default protocol when the run has no config.yaml; then the flags
+    the user gave explicitly (--align, --max-diff, --icp) on top."""
+    from dataclasses import replace
+
+    from inrslam.config import load_config
+    from inrslam.eval.config import Alignment, EvalConfig
+
+    cfg_path = Path(args.run_dir) / "config.yaml"
+    cfg = EvalConfig.from_any(load_config(cfg_path, preset=None).eval) if cfg_path.is_file() else EvalConfig()
+    if args.align is not None:
+        cfg = replace(cfg, align=Alignment(args.align))
+    if args.max_diff is not None:
+        cfg = replace(cfg, max_time_diff=float(args.max_diff))
+    if args.icp is not None:
+        cfg = replace(cfg, icp=bool(args.icp))
+    return cfg
 
 
 def _bench_command(args) -> int:
@@ -261,8 +292,8 @@ def _report_command(args) -> int:
     return 0
 
 
-COMMANDS = {"run": _run_command, "scenes": _scenes_command, "config": _config_command, "eval": _eval_command, "bench": _bench_command,
-            "report": _report_command}
+COMMANDS = {"run": _run_command, "scenes": _scenes_command, "config": _config_command, "eval": _eval_command,
+            "bench": _bench_command, "report": _report_command}
 
 
 def main(argv: list[str] | None = None) -> int:

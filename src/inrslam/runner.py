@@ -11,6 +11,7 @@ from inrslam.errors import ConfigError
 
 RUN_FILES = ("log.jsonl", "metrics.json", "trajectory.txt", "trajectory_gt.txt", "mesh.ply", "run_info.json",
              "keyframes.json", "checkpoints/latest.pt", "config.yaml")
+RUN_DIRS = ("tensorboard", "meshes")
 
 
 def run_slam(cfg, out_dir: str | os.PathLike, progress=None, overwrite: bool = False) -> Path:
@@ -28,9 +29,13 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress=None, overwrite: bool = F
     if (out / "config.yaml").exists() and not overwrite:
         raise ConfigError(f"{out} already holds a run: continue it with --resume {out}, or pass --overwrite")
     if overwrite:
+        import shutil
+
         for name in RUN_FILES:
             if (out / name).exists():
                 (out / name).unlink()
+        for name in RUN_DIRS:
+            shutil.rmtree(out / name, ignore_errors=True)
     dataset = open_dataset(cfg.data)
     system = SlamSystem(cfg, dataset, out, progress=progress)
     system.run(resume=False)
@@ -66,8 +71,10 @@ def _evaluate(system) -> Path:
     if ev.enabled:
         if ev.heldout_every:
             metrics = json.loads((out / "metrics.json").read_text())
-            metrics.update(heldout_metrics(system.model.render_image, system.dataset, system.est, ev.heldout_every,
-                                           ev.heldout_max))
+            # frames between keyframes (offset by half the mapping period), rendered without jitter
+            render = lambda c2w, intr: system.model.render_image(c2w, intr, n_coarse=ev.heldout_samples)
+            metrics.update(heldout_metrics(render, system.dataset, system.est, ev.heldout_every, ev.heldout_max,
+                                           offset=system.cfg.slam.map_every // 2))
             write_json(out / "metrics.json", metrics)
         evaluate_run(out, ev)
     system.write_run_info("complete")

@@ -131,3 +131,20 @@ def test_psnr_and_depth_l1():
     assert math.isfinite(psnr_from_mse(0.0))
     assert depth_l1(torch.tensor([1.1, 1.8, 3.0]), torch.tensor([1.0, 2.0, 0.0])).item() == pytest.approx(0.15)
     assert depth_l1(torch.tensor([1.0]), torch.tensor([0.0])).item() == 0.0
+
+
+def test_sdf_terms_off_for_non_sdf_renderers():
+    out, rgb, D = _batch()
+    on = compute_losses(out, rgb, D, LossConfig(), T)
+    off = compute_losses(out, rgb, D, LossConfig(), T, sdf_terms=False)
+    assert set(off) == set(on)
+    for k in ("free_space", "center", "tail"):
+        assert on[k].item() > 0
+        assert torch.is_tensor(off[k]) and off[k].item() == 0.0 and off[k].dtype == out.sdf.dtype
+    assert off["color"].item() == on["color"].item() and off["depth"].item() == on["depth"].item()
+    cfg = LossConfig()
+    assert off["total"].item() == pytest.approx(cfg.color * on["color"].item() + cfg.depth * on["depth"].item())
+    assert off["total"].item() < on["total"].item()
+    off["total"].backward()
+    assert out.sdf.grad is None  # the scalar is only supervised through the rendered colour / depth
+    assert out.rgb.grad is not None and out.depth.grad is not None

@@ -15,6 +15,7 @@ from inrslam.rendering import (
     NormalsMethod,
     RenderConfig,
     SamplingConfig,
+    SdfToWeights,
     build_renderer,
     composite,
     compute_losses,
@@ -266,3 +267,12 @@ def test_every_renderer_renders_and_backpropagates(name, faithful):
     for p in list(field.parameters()) + [p for p in r.parameters() if p.requires_grad]:
         assert p.grad is not None and torch.isfinite(p.grad).all()
     assert sum(p.grad.abs().sum() for p in field.parameters()) > 0
+
+
+def test_sdf_based_attribute():
+    assert SdfToWeights.sdf_based is True
+    for name in RENDERERS.names():
+        cls = RENDERERS.get(name)
+        assert isinstance(cls.sdf_based, bool)
+        assert cls.sdf_based == (name != "nerf"), name
+        assert build_renderer(RenderConfig(name=name)).sdf_based == (name != "nerf")

@@ -123,3 +123,50 @@ def test_sample_pixels_margins_distinct_and_complete():
         sample_pixels(10, 10, 37, 2, g)  # only 36 pixels inside the margin
     with pytest.raises(ValueError):
         sample_pixels(10, 10, 1, 5, g)
+
+
+def _strict_generator_device(monkeypatch) -> None:
+    """Make torch.rand / torch.randperm enforce CUDA's rule on every device: a generator draws only on its own device
+    (on a CPU-only machine this reproduces the `generator=cpu_gen, device=cuda` error with the meta device)."""
+    for name in ("rand", "randperm"):
+        orig = getattr(torch, name)
+
+        def strict(*args, generator=None, device=None, _orig=orig, **kw):
+            if generator is not None and device is not None and torch.device(device) != generator.device:
+                raise RuntimeError(f"Expected a '{torch.device(device).type}' device type for generator but found "
+                                   f"'{generator.device.type}'")
+            return _orig(*args, generator=generator, device=device, **kw)
+
+        monkeypatch.setattr(torch, name, strict)
+
+
+def test_cpu_generator_with_tensors_on_another_device(monkeypatch):
+    _strict_generator_device(monkeypatch)
+    z = torch.linspace(0.0, 1.0, 8).expand(4, 8).to("meta")
+    j = stratified_jitter(z, torch.Generator().manual_seed(0))
+    assert j.device.type == "meta" and j.shape == (4, 8) and j.dtype == z.dtype
+    u, v = sample_pixels(16, 16, 10, 1, torch.Generator().manual_seed(0), device="meta")
+    assert u.device.type == "meta" and v.shape == (10,)
+
+
+def test_sample_depths_with_cpu_generator_on_every_device(device):
+    depth, dirs, origins = _rays([2.0, 0.0, 3.1])
+    cfg = SamplingConfig()
+    ref = sample_depths(depth, dirs, origins, BOUNDS, cfg, T, torch.Generator().manual_seed(3))
+    z = sample_depths(depth.to(device), dirs.to(device), origins.to(device), BOUNDS, cfg, T,
+                      torch.Generator().manual_seed(3))
+    assert z.device.type == device.type and z.dtype == torch.float64
+    torch.testing.assert_close(z.cpu(), ref)  # same draws whatever the tensors' device
+    u, v = sample_pixels(20, 30, 50, 2, torch.Generator().manual_seed(1), device=device)
+    assert u.device.type == device.type and v.device.type == device.type
+
+
+def test_cpu_jitter_draws_unchanged():
+    """On CPU the jitter is exactly lower + U(0,1)·(upper - lower) with the generator's next draws in z's dtype."""
+    for dtype in (torch.float32, torch.float64):
+        z = torch.tensor([[0.0, 1.0, 3.0, 3.5], [0.5, 0.7, 0.9, 2.0]], dtype=dtype)
+        u = torch.rand(z.shape, generator=torch.Generator().manual_seed(7), dtype=dtype)
+        mid = 0.5 * (z[:, 1:] + z[:, :-1])
+        lower, upper = torch.cat([z[:, :1], mid], 1), torch.cat([mid, z[:, -1:]], 1)
+        j = stratified_jitter(z, torch.Generator().manual_seed(7))
+        assert torch.equal(j, lower + u * (upper - lower))

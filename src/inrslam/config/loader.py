@@ -223,11 +223,16 @@ def load_config(
     layers: list[tuple[dict, str]] = []
     if preset:
         layers += _load_chain(_preset_path(preset))
+    n_preset = len(layers)
     if config:
         layers += _load_chain(Path(config))
     if overrides:
         ov = parse_overrides(overrides) if isinstance(overrides, list) else overrides
         layers.append((ov, "command-line overrides"))
+    if any(layer.get("faithful") is True for layer, _ in layers):
+        from inrslam.config.schema import FAITHFUL_LAYER
+
+        layers.insert(n_preset, (FAITHFUL_LAYER, "faithful=true"))
     return build_config(RunConfig, layers)
 
 

@@ -29,19 +29,14 @@ class RunConfig:
     threads: int = 0  # torch/numba threads (0 = all cores)
     faithful: bool = False  # reproduce the original code's documented quirks (docs/differences.md) everywhere
 
-    def __post_init__(self):
-        if self.faithful:
-            apply_faithful(self)
 
-
-def apply_faithful(cfg: RunConfig) -> None:
-    """Switch every section to the original code's behaviour (docs/differences.md): [0,1] plane coordinates,
-    sum-of-planes x sum-of-lines TensoRF and the cubic tcnn grid rule; the k = 0 SDF(direct) fallback; ±1.5 T
-    surface band; one global loss mean; floor-divided default intrinsics."""
-    from inrslam.rendering.config import LossReduction
-
-    cfg.field.faithful = True
-    cfg.render.faithful = True
-    cfg.sampling.band = 1.5
-    cfg.loss.reduction = LossReduction.GLOBAL
-    cfg.data.faithful_intrinsics = True
+# The original code's behaviour (docs/differences.md), applied as a layer *below* the user's own files and overrides
+# whenever `faithful: true` is set anywhere, so an explicit key still wins.
+FAITHFUL_LAYER = {
+    "field": {"faithful": True},  # [0,1] plane coordinates, (sum planes) x (sum lines), cubic tcnn grid rule
+    "render": {"faithful": True},  # SDF(direct) k = 0 fallback, original NeuS
+    "sampling": {"band": 1.5},  # surface samples in +-1.5 T
+    "loss": {"reduction": "global"},  # one mean over all masked samples of the batch
+    "data": {"faithful_intrinsics": True},  # floor-divided default intrinsics
+    "slam": {"eval_final_pose": False},  # best of the evaluated poses only, final update never evaluated
+}

@@ -9,8 +9,9 @@ import numpy as np
 from inrslam.eval.image import depth_l1, psnr, ssim
 
 
-def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: int) -> dict:
-    """PSNR / SSIM / depth L1 of every `every`-th frame (at most `max_frames`).
+def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: int, offset: int = 0) -> dict:
+    """PSNR / SSIM / depth L1 of frames offset, offset + every, ... (at most `max_frames`); an offset between
+    keyframes keeps the evaluated frames out of the keyframe ray store.
 
     Args:
         render: (c2w (4,4) tensor, intrinsics) -> (rgb (H,W,3) in [0,1], depth (H,W) metres), tensors or arrays.
@@ -19,7 +20,7 @@ def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: in
     Returns:
         dict(psnr_db, ssim, depth_l1_m, heldout_frames).
     """
-    idx = list(range(0, len(dataset), every))[:max_frames]
+    idx = list(range(min(offset, len(dataset) - 1), len(dataset), every))[:max_frames]
     ps, ss, dl = [], [], []
     for i in idx:
         frame = dataset[i]

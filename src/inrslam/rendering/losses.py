@@ -11,6 +11,10 @@ Per sample i of a ray with depth D (T = truncation, metres; s in T-units; z z-de
 Reduction: `per_ray` = mean of e² over each ray's masked samples, then mean over the rays having such samples
 (Eqs. 3, 5); `global` = mean of e² over every masked sample of the batch (the reference code, spec §13.16).
 Empty sets contribute exactly 0 (never NaN).
+
+The free-space / centre / tail terms read the field's scalar as an SDF. For renderers that are not SDF-based
+(`SdfToWeights.sdf_based` False: plain NeRF density) they are meaningless — a density is not a distance — so
+`compute_losses(..., sdf_terms=False)` returns them as zeros and leaves them out of `total` (L = λ_p L_p + λ_g L_g).
 """
 
 from __future__ import annotations
@@ -72,13 +76,15 @@ def sdf_masks(z: Tensor, target_depth: Tensor, truncation: float, center_band: f
 
 
 def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, cfg: LossConfig,
-                   truncation: float) -> dict[str, Tensor]:
+                   truncation: float, sdf_terms: bool = True) -> dict[str, Tensor]:
     """All loss terms of a batch of rendered rays (see module docstring for the equations).
 
     Args:
         out: `render_rays` output (uses rgb, depth, sdf, z).
         target_rgb: (R, 3) in [0, 1]; target_depth: (R,) metres, 0 = none.
         cfg: weights, masks, reduction; truncation: T, metres.
+        sdf_terms: compute the SDF terms (free_space, center, tail). False for renderers that are not SDF-based
+            (`renderer.sdf_based`): those terms are then zero tensors (no gradient) and excluded from 'total'.
     Returns:
         dict with scalar tensors 'color', 'depth', 'free_space', 'center', 'tail' (unweighted) and 'total'
         (weighted sum).
@@ -87,18 +93,21 @@ def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, 
     valid = target_depth > 0
     color = safe_mean((out.rgb - target_rgb) ** 2)
     depth = safe_mean((out.depth - target_depth) ** 2, valid)
-    front, center, tail = sdf_masks(out.z, target_depth, truncation, cfg.center_band)
-    fs_err = (out.sdf - cfg.free_space_target) ** 2
-    sdf_err = (out.z + out.sdf * truncation - target_depth[:, None]) ** 2
-    terms = {
-        "color": color,
-        "depth": depth,
-        "free_space": masked_sample_mean(fs_err, front, reduction),
-        "center": masked_sample_mean(sdf_err, center, reduction),
-        "tail": masked_sample_mean(sdf_err, tail, reduction),
-    }
-    terms["total"] = (cfg.color * terms["color"] + cfg.depth * terms["depth"] + cfg.free_space * terms["free_space"]
-                      + cfg.center * terms["center"] + cfg.tail * terms["tail"])
+    terms = {"color": color, "depth": depth}
+    total = cfg.color * color + cfg.depth * depth
+    if sdf_terms:
+        front, center, tail = sdf_masks(out.z, target_depth, truncation, cfg.center_band)
+        fs_err = (out.sdf - cfg.free_space_target) ** 2
+        sdf_err = (out.z + out.sdf * truncation - target_depth[:, None]) ** 2
+        terms["free_space"] = masked_sample_mean(fs_err, front, reduction)
+        terms["center"] = masked_sample_mean(sdf_err, center, reduction)
+        terms["tail"] = masked_sample_mean(sdf_err, tail, reduction)
+        total = (total + cfg.free_space * terms["free_space"] + cfg.center * terms["center"]
+                 + cfg.tail * terms["tail"])
+    else:
+        zero = out.sdf.new_zeros(())
+        terms.update(free_space=zero, center=zero.clone(), tail=zero.clone())
+    terms["total"] = total
     return terms
 
 

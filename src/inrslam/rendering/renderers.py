@@ -35,12 +35,17 @@ class SdfToWeights(nn.Module):
 
     Attributes:
         needs_normals: whether `forward` needs SDF gradients (`render_rays` then computes them).
+        sdf_based: whether the field's scalar is read as a signed distance (T-units). True for direct, density,
+            neus and volsdf; False for nerf, whose scalar is a raw volume density: the SDF losses (free-space,
+            centre, tail) and SDF-only uses (zero-level mesh) do not apply to it — pass
+            `compute_losses(..., sdf_terms=renderer.sdf_based)`.
         normals_method: how `render_rays` computes them (`NormalsMethod`).
         fd_eps: finite-difference step, metres.
         faithful: reproduce the reference code's quirks.
     """
 
     needs_normals: bool = False
+    sdf_based: bool = True
 
     def __init__(self, cfg: RenderConfig):
         super().__init__()
@@ -193,8 +198,11 @@ class NerfWeights(SdfToWeights):
     """Plain volume density (NeRF, Mildenhall et al. ECCV 2020): the field's scalar is a raw density.
 
     σ_i = act(s_i) (1/m; act = softplus or ReLU), τ_i = σ_i δ_i with δ_i the metric length of the sample's
-    mid-point section, w_i = (1 - e^{-τ_i}) exp(-Σ_{j<i} τ_j). Not SDF-based: the SDF losses do not apply to it.
+    mid-point section, w_i = (1 - e^{-τ_i}) exp(-Σ_{j<i} τ_j). Not SDF-based (`sdf_based = False`): the SDF losses
+    do not apply to it.
     """
+
+    sdf_based = False
 
     def __init__(self, cfg: RenderConfig):
         super().__init__(cfg)

@@ -41,14 +41,17 @@ def stratified_jitter(z: Tensor, generator: torch.Generator | None = None) -> Te
     z'_k = lower_k + u_k (upper_k - lower_k), u_k ~ U(0, 1). The result stays sorted and inside [z_0, z_{S-1}].
 
     Args:
-        z: (R, S) sorted; generator: torch RNG on z's device (None = global RNG).
+        z: (R, S) sorted; generator: torch RNG on any device (None = global RNG of z's device). The uniforms are
+            drawn on the generator's device and moved to z's, so a CPU generator works with CUDA samples (and
+            the draws for a given seed do not depend on where z lives).
     Returns:
         (R, S) jittered samples.
     """
     mid = 0.5 * (z[..., 1:] + z[..., :-1])
     lower = torch.cat([z[..., :1], mid], dim=-1)
     upper = torch.cat([mid, z[..., -1:]], dim=-1)
-    u = torch.rand(z.shape, generator=generator, device=z.device, dtype=z.dtype)
+    gen_device = generator.device if generator is not None else z.device
+    u = torch.rand(z.shape, generator=generator, device=gen_device, dtype=z.dtype).to(z.device)
     return lower + u * (upper - lower)
 
 
@@ -85,7 +88,7 @@ def sample_depths(
         origins: (R, 3) metres.
         bounds: (3, 2) scene box, metres.
         cfg: sampling options; truncation: T, metres.
-        generator: RNG for the jitter (on depth's device).
+        generator: RNG for the jitter, on any device (a CPU generator with CUDA rays is fine).
     Returns:
         (R, S) sorted z-depths, metres, dtype of `depth`.
     """
@@ -132,7 +135,8 @@ def sample_pixels(
 
     Args:
         height, width: image size; n: number of pixels; edge_margin: border width, pixels.
-        generator: CPU torch RNG (None = global RNG); device: device of the returned tensors.
+        generator: torch RNG on any device (None = global CPU RNG); the permutation is drawn on the generator's
+            device; device: device of the returned tensors (default: the generator's).
     Returns:
         u (column), v (row): (n,) int64 with edge_margin <= u < width - edge_margin (same for v).
     """

@@ -23,7 +23,8 @@ class SlamConfig:
     track_pixels: int = 1024  # rays per tracking iteration (drawn once per frame)
     track_lr: float = 1e-3  # Adam learning rate of the pose
     track_edge: int = 20  # pixels ignored at the image border during tracking
-    keep_best_pose: bool = True  # keep the lowest-loss pose (evaluating the final update too)
+    keep_best_pose: bool = True  # keep the lowest-loss evaluated pose (False: the last evaluated pose)
+    eval_final_pose: bool = True  # also evaluate the pose after the final update (the original never did)
     pose_param: PoseParam = PoseParam.QUAT  # pose parameterisation for tracking and BA
     const_velocity: bool = True  # constant-velocity motion prediction
     map_every: int = 5  # mapping + keyframe every N frames
@@ -56,4 +57,3 @@ class OutputConfig:
     """What a run writes besides the mandatory outputs."""
 
     tensorboard: bool = True  # TensorBoard scalars when tensorboard is installed
-    quiet: bool = False  # no progress bar / table

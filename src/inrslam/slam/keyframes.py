@@ -3,69 +3,67 @@ over the union of all stored rays at mapping time and transformed with the keyfr
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import torch
 from torch import Tensor
 
 
-@dataclass
 class KeyframeStore:
     """Stored rays of all keyframes (on `device`).
 
     Attributes:
         frame_ids: frame index of each keyframe, in insertion order (slot k = keyframe k).
-        dirs: (M, 3) camera-frame ray directions (z = 1).
-        rgb: (M, 3) colours in [0, 1].
-        depth: (M,) measured depth in metres (0 = none).
-        slot: (M,) keyframe slot of each ray.
+        dirs: (M', 3) camera-frame ray directions (z = 1); rgb: (M', 3) in [0, 1]; depth: (M',) metres (0 = none);
+        slot: (M',) keyframe slot of each ray. Buffers grow by doubling; the first `n_rays` rows are in use.
     """
 
-    device: torch.device = torch.device("cpu")
-    frame_ids: list[int] = field(default_factory=list)
-    dirs: Tensor = None  # type: ignore[assignment]
-    rgb: Tensor = None  # type: ignore[assignment]
-    depth: Tensor = None  # type: ignore[assignment]
-    slot: Tensor = None  # type: ignore[assignment]
-
-    def __post_init__(self):
-        if self.dirs is None:
-            self.dirs = torch.zeros(0, 3, device=self.device)
-            self.rgb = torch.zeros(0, 3, device=self.device)
-            self.depth = torch.zeros(0, device=self.device)
-            self.slot = torch.zeros(0, dtype=torch.long, device=self.device)
+    def __init__(self, device: torch.device = torch.device("cpu")):
+        self.device = torch.device(device)
+        self.frame_ids: list[int] = []
+        self.dirs = torch.zeros(0, 3, device=self.device)
+        self.rgb = torch.zeros(0, 3, device=self.device)
+        self.depth = torch.zeros(0, device=self.device)
+        self.slot = torch.zeros(0, dtype=torch.long, device=self.device)
+        self._n = 0
 
     def __len__(self) -> int:
         return len(self.frame_ids)
 
     @property
     def n_rays(self) -> int:
-        return int(self.depth.shape[0])
+        return self._n
 
     def add(self, frame_id: int, dirs: Tensor, rgb: Tensor, depth: Tensor) -> None:
         """Append the chosen rays of one keyframe."""
-        k = len(self.frame_ids)
+        k, n = len(self.frame_ids), dirs.shape[0]
+        need = self._n + n
+        if need > self.depth.shape[0]:
+            cap = max(need, 2 * self.depth.shape[0])
+            self.dirs, self.rgb, self.depth, self.slot = (
+                _grow(t, cap) for t in (self.dirs, self.rgb, self.depth, self.slot))
+        sl = slice(self._n, need)
+        self.dirs[sl], self.rgb[sl], self.depth[sl] = dirs.to(self.device), rgb.to(self.device), depth.to(self.device)
+        self.slot[sl] = k
+        self._n = need
         self.frame_ids.append(int(frame_id))
-        self.dirs = torch.cat([self.dirs, dirs.to(self.device)])
-        self.rgb = torch.cat([self.rgb, rgb.to(self.device)])
-        self.depth = torch.cat([self.depth, depth.to(self.device)])
-        self.slot = torch.cat([self.slot, torch.full((dirs.shape[0],), k, dtype=torch.long, device=self.device)])
 
     def sample(self, n: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """n rays uniformly over all stored rays (with replacement when n exceeds the store).
+        """n rays uniformly over all stored rays: without replacement while the store is small (< 8 n rays), with
+        replacement beyond (a full permutation of millions of rays every iteration would dominate mapping).
 
         Returns: slot (n,), dirs (n, 3), rgb (n, 3), depth (n,).
         """
-        m = self.n_rays
-        if n >= m:
-            idx = torch.randint(0, m, (n,), generator=generator, device=generator.device).to(self.device)
+        m = self._n
+        if m >= 8 * n or n >= m:
+            idx = torch.randint(0, m, (n,), generator=generator, device=generator.device)
         else:
-            idx = torch.randperm(m, generator=generator, device=generator.device)[:n].to(self.device)
+            idx = torch.randperm(m, generator=generator, device=generator.device)[:n]
+        idx = idx.to(self.device)
         return self.slot[idx], self.dirs[idx], self.rgb[idx], self.depth[idx]
 
     def state_dict(self) -> dict:
-        return {"frame_ids": list(self.frame_ids), "dirs": self.dirs.cpu(), "rgb": self.rgb.cpu(),
-                "depth": self.depth.cpu(), "slot": self.slot.cpu()}
+        m = self._n
+        return {"frame_ids": list(self.frame_ids), "dirs": self.dirs[:m].cpu(), "rgb": self.rgb[:m].cpu(),
+                "depth": self.depth[:m].cpu(), "slot": self.slot[:m].cpu()}
 
     def load_state_dict(self, state: dict) -> None:
         self.frame_ids = list(state["frame_ids"])
@@ -73,3 +71,10 @@ class KeyframeStore:
         self.rgb = state["rgb"].to(self.device)
         self.depth = state["depth"].to(self.device)
         self.slot = state["slot"].to(self.device)
+        self._n = int(self.depth.shape[0])
+
+
+def _grow(t: Tensor, capacity: int) -> Tensor:
+    out = t.new_zeros((capacity,) + tuple(t.shape[1:]))
+    out[: t.shape[0]] = t
+    return out

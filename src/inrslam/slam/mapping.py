@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
+from inrslam.rendering.losses import depth_l1, psnr_from_mse
 from inrslam.slam.poses import PoseSet
 
 
@@ -15,6 +15,7 @@ from inrslam.slam.poses import PoseSet
 class MapResult:
     kf_c2w: Tensor  # (K, 4, 4) refined keyframe poses
     cur_c2w: Tensor  # (4, 4) refined current pose
+    skipped: int = 0  # iterations whose loss was not finite (no step taken)
     psnr: list = field(default_factory=list)  # per-iteration batch PSNR (dB)
     depth_l1: list = field(default_factory=list)  # per-iteration batch depth L1 (m)
     losses: list = field(default_factory=list)
@@ -44,21 +45,17 @@ def map_frame(model, optimizers: dict, store, kf_c2w: Tensor, cur_c2w: Tensor, c
         c2w = mats[slots]
         losses, out = model.loss(c2w, torch.cat([dirs_kf, dirs_c]), torch.cat([rgb_kf, rgb_c]),
                                  torch.cat([depth_kf, depth_c]), generator)
-        for opt in optimizers.values():
-            opt.zero_grad()
-        losses["total"].backward()
-        for opt in optimizers.values():
-            opt.step()
+        if not optimisation_step(losses["total"], optimizers):
+            res.skipped += 1
+            continue
         if do_ba and it % cfg.ba_pose_every == 0:
             pose_opt.step()
             pose_opt.zero_grad(set_to_none=True)
         with torch.no_grad():
-            mse = float(losses["color_mse"]) if "color_mse" in losses else float(
-                ((out.rgb - torch.cat([rgb_kf, rgb_c])) ** 2).mean())
             d = torch.cat([depth_kf, depth_c])
-            valid = d > 0
-            res.psnr.append(-10 * math.log10(max(mse, 1e-12)))
-            res.depth_l1.append(float((out.depth[valid] - d[valid]).abs().mean()) if valid.any() else float("nan"))
+            res.psnr.append(float(psnr_from_mse(losses["color"])))
+            if bool((d > 0).any()):
+                res.depth_l1.append(float(depth_l1(out.depth, d)))
             res.losses.append(float(losses["total"].detach()))
     if do_ba:
         with torch.no_grad():
@@ -78,10 +75,19 @@ def initialise(model, optimizers: dict, frame_rays, iters: int, n_pixels: int, g
     for _ in range(iters):
         c2w, dirs, rgb, depth = frame_rays(n_pixels)
         losses, _ = model.loss(c2w, dirs, rgb, depth, generator)
-        for opt in optimizers.values():
-            opt.zero_grad()
-        losses["total"].backward()
-        for opt in optimizers.values():
-            opt.step()
+        optimisation_step(losses["total"], optimizers)
         hist.append(float(losses["total"].detach()))
     return hist
+
+
+def optimisation_step(loss: torch.Tensor, optimizers: dict) -> bool:
+    """Backward and step every optimiser, unless the loss is not finite (then nothing changes: a NaN never
+    reaches the map). Returns whether a step was taken."""
+    for opt in optimizers.values():
+        opt.zero_grad()
+    if not bool(torch.isfinite(loss.detach())):
+        return False
+    loss.backward()
+    for opt in optimizers.values():
+        opt.step()
+    return True

@@ -3,13 +3,15 @@ initialisation, tracking and mapping (spec §6: the same total loss everywhere).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 from torch import Tensor, nn
 
 from inrslam.data.frame import Intrinsics
 from inrslam.fields import build_field, make_optimizer
-from inrslam.geometry.camera import pixel_directions
+from inrslam.geometry.camera import pixel_directions, world_rays
 from inrslam.rendering import build_renderer, compute_losses, render_rays, renderer_param_groups, sample_depths
 
 
@@ -56,17 +58,13 @@ class SceneModel(nn.Module):
         Returns:
             (dict of loss terms with 'total', RenderOutput)
         """
-        if c2w.dim() == 2:
-            dirs = dirs_cam @ c2w[:3, :3].T
-            origins = c2w[:3, 3].expand_as(dirs)
-        else:
-            dirs = torch.einsum("rij,rj->ri", c2w[:, :3, :3], dirs_cam)
-            origins = c2w[:, :3, 3]
+        origins, dirs = world_rays(c2w, dirs_cam)
         with torch.no_grad():
             z = sample_depths(depth, dirs.detach(), origins.detach(), self.bounds, self.cfg.sampling,
                               self.truncation, generator)
         out = render_rays(self.field, self.renderer, origins, dirs, z, self.truncation)
-        losses = compute_losses(out, rgb, depth, self.cfg.loss, self.truncation)
+        losses = compute_losses(out, rgb, depth, self.cfg.loss, self.truncation,
+                                sdf_terms=getattr(self.renderer, "sdf_based", True))
         return losses, out
 
     # -- held-out rendering (no measured depth) -----------------------------------------------------------
@@ -83,11 +81,12 @@ class SceneModel(nn.Module):
         dirs_cam = pixel_directions(intr, u.reshape(-1).float(), v.reshape(-1).float())
         dirs_all = dirs_cam @ c2w[:3, :3].T
         rgb_out, depth_out = [], []
+        no_jitter = dataclasses.replace(self.cfg.sampling, jitter=False)  # deterministic evaluation renders
         for s in range(0, dirs_all.shape[0], chunk):
             dirs = dirs_all[s:s + chunk]
             origins = c2w[:3, 3].expand_as(dirs)
             guess = self.surface_guess(origins, dirs, n_coarse)
-            z = sample_depths(guess, dirs, origins, self.bounds, self.cfg.sampling, self.truncation, None)
+            z = sample_depths(guess, dirs, origins, self.bounds, no_jitter, self.truncation, None)
             out = render_rays(self.field, self.renderer, origins, dirs, z, self.truncation)
             rgb_out.append(out.rgb)
             depth_out.append(out.depth)
@@ -112,6 +111,4 @@ class SceneModel(nn.Module):
 
 
 def _uniform_only(sampling_cfg, n: int):
-    import dataclasses
-
     return dataclasses.replace(sampling_cfg, n_uniform=n, jitter=False)

@@ -80,6 +80,9 @@ class SlamSystem:
         self.device = resolve_device(cfg.device)
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
+            import numba
+
+            numba.set_num_threads(min(cfg.threads, numba.config.NUMBA_NUM_THREADS))
         torch.manual_seed(cfg.seed)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.n_frames = len(dataset)
@@ -97,6 +100,7 @@ class SlamSystem:
         self.map_ms: list[float] = []
         self.init_ms = 0.0
         self.wall_s_before = 0.0  # wall time of earlier (interrupted) segments of this run
+        self.peak_mb_before = 0.0  # peak memory of earlier segments
         self._t_start = time.perf_counter()
         self.proc_psnr: list[float] = []
         self.proc_depth_l1: list[float] = []
@@ -133,6 +137,8 @@ class SlamSystem:
             "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
                            "width": intr.width, "height": intr.height},
             "bounds": self.bounds.tolist(),
+            "bounds_source": ("estimated from the depth of the first frames with their ground-truth poses"
+                              if getattr(self.dataset, "bounds_estimated", False) else "dataset / config"),
             "gt_mesh": str(self.dataset.gt_mesh) if getattr(self.dataset, "gt_mesh", None) else None,
             "keyframes": list(self.store.frame_ids),
             "timestamps": self.timestamps[: self.next_frame].tolist(),
@@ -161,6 +167,7 @@ class SlamSystem:
             "proc_psnr": self.proc_psnr, "proc_depth_l1": self.proc_depth_l1, "events": self.events,
             "log_bytes": log.stat().st_size if log.exists() else 0,
             "wall_s": self.wall_s_before + time.perf_counter() - self._t_start,
+            "peak_mb": self._peak_memory_mb(),
         }
 
     def save_checkpoint(self) -> None:
@@ -183,6 +190,7 @@ class SlamSystem:
         self.proc_psnr, self.proc_depth_l1, self.events = st["proc_psnr"], st["proc_depth_l1"], st["events"]
         self.next_frame = st["next_frame"]
         self.wall_s_before = st["wall_s"]
+        self.peak_mb_before = st["peak_mb"]
         log = self.out / "log.jsonl"
         if log.exists():  # drop records written after the checkpoint, so the resumed log equals an uninterrupted one
             with open(log, "rb+") as f:
@@ -272,17 +280,23 @@ class SlamSystem:
                         lambda n: ft.sample(n, self.generator), cfg, self.generator)
         map_ms = (time.perf_counter() - t0) * 1e3
         self.map_ms.append(map_ms)
-        if all(torch.isfinite(res.kf_c2w).all(dim=(1, 2))) and bool(torch.isfinite(res.cur_c2w).all()):
+        fallback = None
+        if bool(torch.isfinite(res.kf_c2w).all()) and bool(torch.isfinite(res.cur_c2w).all()):
             self.est[kf_ids] = res.kf_c2w
             self.est[i] = res.cur_c2w
-        else:
-            self.events.append({"frame": i, "event": "ba_nan"})
+        else:  # keep the poses from before bundle adjustment
+            fallback = "ba_nan"
+        if res.skipped:
+            fallback = (fallback + "," if fallback else "") + f"nan_loss_x{res.skipped}"
+        if fallback:
+            self.events.append({"frame": i, "event": fallback})
         self.proc_psnr += res.psnr
         self.proc_depth_l1 += [d for d in res.depth_l1 if math.isfinite(d)]
         self._log({"type": "map", "frame": i, "map_ms": map_ms, "keyframes": len(kf_ids),
                    "loss": res.losses[-1] if res.losses else None,
                    "psnr": float(np.mean(res.psnr)) if res.psnr else None,
-                   "depth_l1": float(np.nanmean(res.depth_l1)) if res.depth_l1 else None})
+                   "depth_l1": float(np.nanmean(res.depth_l1)) if res.depth_l1 else None,
+                   **({"fallback": fallback} if fallback else {})})
         self._add_keyframe(i, ft)
 
     def _add_keyframe(self, i: int, ft: FrameTensors) -> None:
@@ -304,9 +318,12 @@ class SlamSystem:
         return True
 
     def _peak_memory_mb(self) -> float:
+        """Peak memory of this run (max over resumed segments): CUDA allocator peak, or the process's max RSS."""
         if self.device.type == "cuda":
-            return torch.cuda.max_memory_allocated(self.device) / 2**20
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+            now = torch.cuda.max_memory_allocated(self.device) / 2**20
+        else:
+            now = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+        return max(now, self.peak_mb_before)
 
     def _finish(self, wall_s: float) -> None:
         from inrslam.fields import model_size_mb

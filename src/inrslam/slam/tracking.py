@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -16,13 +17,26 @@ class TrackResult:
     c2w: Tensor  # (4, 4) chosen pose
     best_loss: float  # loss of the chosen pose (nan if none finite)
     iters: int  # iterations run
-    fallback: str | None  # why the prediction was kept ("nan_loss", "pose_jump", "no_valid_pixels") or None
+    fallback: str | None  # "nan_loss" / "pose_jump" (prediction or best finite pose kept), or None
+
+
+@contextmanager
+def frozen(module: torch.nn.Module):
+    """Temporarily stop gradients into `module`'s parameters (tracking only needs gradients to the points)."""
+    flags = [(p, p.requires_grad) for p in module.parameters()]
+    for p, _ in flags:
+        p.requires_grad_(False)
+    try:
+        yield module
+    finally:
+        for p, flag in flags:
+            p.requires_grad_(flag)
 
 
 def track_frame(model, c2w_pred: Tensor, dirs_cam: Tensor, rgb: Tensor, depth: Tensor, cfg, generator,
                 max_jump: float) -> TrackResult:
-    """Adam on the pose only; returns the lowest-loss pose among all evaluated poses, *including* the pose after
-    the final update (evaluated with one extra forward pass).
+    """Adam on the pose only (map frozen); returns the lowest-loss pose among all evaluated poses, *including* the
+    pose after the final update (one extra forward pass) unless `cfg.eval_final_pose` is off (the original code).
 
     Args:
         model: `SceneModel` (its parameters are not stepped here).
@@ -31,18 +45,26 @@ def track_frame(model, c2w_pred: Tensor, dirs_cam: Tensor, rgb: Tensor, depth: T
         cfg: `SlamConfig`. generator: sample-jitter generator.
         max_jump: metres; a best pose farther than this from the prediction is rejected.
     """
+    with frozen(model):
+        return _track(model, c2w_pred, dirs_cam, rgb, depth, cfg, generator, max_jump)
+
+
+def _track(model, c2w_pred, dirs_cam, rgb, depth, cfg, generator, max_jump) -> TrackResult:
     pose = PoseSet(c2w_pred[None], cfg.pose_param)
     opt = torch.optim.Adam(pose.parameters(), lr=cfg.track_lr)
     best_loss, best = math.inf, c2w_pred.detach().clone()
-    n_iters = cfg.track_iters
-    for it in range(n_iters + 1):
+    n_evals = cfg.track_iters + (1 if cfg.eval_final_pose else 0)
+    fallback = None
+    it = 0
+    for it in range(n_evals):
         c2w = pose.matrices()[0]
-        final_eval = it == n_iters
+        final_eval = it == cfg.track_iters  # only reached with eval_final_pose: forward pass, no update
         with torch.set_grad_enabled(not final_eval):
             losses, _ = model.loss(c2w, dirs_cam, rgb, depth, generator)
             loss = losses["total"]
         val = float(loss.detach())
         if not math.isfinite(val):
+            fallback = "nan_loss"
             break
         if val < best_loss or not cfg.keep_best_pose:
             best_loss, best = val, c2w.detach().clone()
@@ -51,9 +73,9 @@ def track_frame(model, c2w_pred: Tensor, dirs_cam: Tensor, rgb: Tensor, depth: T
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-    model.zero_grad(set_to_none=True)
     if not math.isfinite(best_loss):
         return TrackResult(c2w_pred.detach().clone(), float("nan"), it, "nan_loss")
     if float(torch.linalg.norm(best[:3, 3] - c2w_pred[:3, 3])) > max_jump:
         return TrackResult(c2w_pred.detach().clone(), best_loss, it, "pose_jump")
-    return TrackResult(best, best_loss, it, None)
+    # a NaN after some finite iterations keeps the best finite pose; the event is still reported
+    return TrackResult(best, best_loss, it, fallback)

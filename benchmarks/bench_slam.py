@@ -1,0 +1,79 @@
+"""Per-frame SLAM time at the `paper` preset for each scene representation F, fused kernels vs the plain-PyTorch
+reference kernels, in one run (issue #5 speed table). Prints a table; never asserted in tests.
+
+    python benchmarks/bench_slam.py                       # all F, fused and reference, 15 frames of builtin:room
+    python benchmarks/bench_slam.py --encodings dense triplane --frames 20 --kernels numba
+
+Per-frame time = (all tracking time + all mapping time) / tracked frames, i.e. the steady-state cost of a frame
+(tracking every frame, mapping every 5th). The 500-iteration initialisation is excluded (reported apart).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+
+ENCODINGS = ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+tri"]
+
+
+def run_one(encoding: str, kernel: str, frames: int, render: str, data: str, init_iters: int) -> dict:
+    from inrslam.config import load_config
+    from inrslam.data.open import open_dataset
+    from inrslam.slam.system import SlamSystem
+
+    cfg = load_config(preset="paper", overrides=[
+        f"data.path={data}", f"data.max_frames={frames}", f"field.encoding={encoding}", f"field.kernel={kernel}",
+        f"render.name={render}", f"slam.init_iters={init_iters}", "slam.checkpoint_every=0", "mesh.enabled=false",
+        "eval.enabled=false", "output.tensorboard=false"])
+    with tempfile.TemporaryDirectory() as out:
+        system = SlamSystem(cfg, open_dataset(cfg.data), out)
+        t0 = time.perf_counter()
+        system.run()
+        wall = time.perf_counter() - t0
+        tracked = len(system.track_ms)
+        per_frame = (sum(system.track_ms) + sum(system.map_ms)) / max(tracked, 1)
+        return {"encoding": encoding, "kernel": kernel, "track_ms": sum(system.track_ms) / max(tracked, 1),
+                "map_ms": sum(system.map_ms) / max(len(system.map_ms), 1), "per_frame_s": per_frame / 1e3,
+                "init_ms_per_iter": system.init_ms / max(init_iters, 1), "wall_s": wall}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--encodings", nargs="+", default=ENCODINGS)
+    ap.add_argument("--kernels", nargs="+", default=["numba", "torch"])
+    ap.add_argument("--frames", type=int, default=15)
+    ap.add_argument("--ref-frames", type=int, default=6, help="frames for the (slow) reference-kernel runs")
+    ap.add_argument("--render", default="density")
+    ap.add_argument("--data", default="builtin:room")
+    ap.add_argument("--init-iters", type=int, default=20, help="initialisation iterations (not timed per frame)")
+    ap.add_argument("--json", help="also write the rows to this JSON file")
+    args = ap.parse_args()
+    import torch
+
+    print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
+          f"{torch.__version__}, threads {torch.get_num_threads()}; data {args.data}, G={args.render}, paper preset")
+    print(f"{'F':<10} {'kernel':<7} {'track ms/frame':>15} {'map ms/call':>12} {'s/frame':>8} {'init ms/it':>11}")
+    rows = []
+    for enc in args.encodings:
+        for kernel in args.kernels:
+            frames = args.frames if kernel != "torch" else args.ref_frames
+            r = run_one(enc, kernel, frames, args.render, args.data, args.init_iters)
+            rows.append(r)
+            print(f"{enc:<10} {kernel:<7} {r['track_ms']:>15.0f} {r['map_ms']:>12.0f} {r['per_frame_s']:>8.2f} "
+                  f"{r['init_ms_per_iter']:>11.0f}", flush=True)
+        fused = [r for r in rows if r["encoding"] == enc and r["kernel"] == "numba"]
+        ref = [r for r in rows if r["encoding"] == enc and r["kernel"] == "torch"]
+        if fused and ref:
+            print(f"{enc:<10} ratio   reference/fused per-frame time: {ref[0]['per_frame_s'] / fused[0]['per_frame_s']:.1f}x",
+                  flush=True)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,90 @@
+"""Command-line interface: `inrslam.cli.main` on tiny inputs (no SLAM run)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+
+from inrslam.bench.testing import write_fake_run
+from inrslam.cli import main
+from inrslam.fields.registry import ENCODINGS
+from inrslam.rendering import RENDERERS
+
+
+def _fake_run(tmp_path, eval_section: dict):
+    """A finished run directory whose config.yaml carries a non-default evaluation protocol."""
+    rd = write_fake_run(tmp_path / "run", "hash", "direct", frames=12)
+    cfg = yaml.safe_load((rd / "config.yaml").read_text())
+    cfg["eval"] = eval_section
+    (rd / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return rd
+
+
+def test_eval_run_dir_uses_the_runs_protocol(tmp_path, capsys):
+    rd = _fake_run(tmp_path, {"align": "sim3", "n_samples": 1234, "icp": True, "max_time_diff": 0.005})
+    assert main(["eval", str(rd), "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    proto = json.loads((rd / "metrics.json").read_text())["protocol"]
+    assert printed["protocol"] == proto
+    assert proto["n_samples"] == 1234
+    assert proto["alignment"] == "sim3" and proto["icp"] is True
+    assert proto["association"]["max_diff_s"] == 0.005
+    assert json.loads((rd / "metrics.json").read_text())["ate_rmse_m"] is not None
+
+
+def test_eval_run_dir_explicit_flags_override_the_run(tmp_path, capsys):
+    rd = _fake_run(tmp_path, {"align": "sim3", "n_samples": 1234, "icp": True})
+    assert main(["eval", str(rd), "--align", "none", "--max-diff", "0.01", "--json"]) == 0
+    proto = json.loads((rd / "metrics.json").read_text())["protocol"]
+    assert proto["alignment"] == "none" and proto["association"]["max_diff_s"] == 0.01
+    assert proto["n_samples"] == 1234 and proto["icp"] is True  # not given: the run's values
+
+
+def test_eval_run_dir_without_config_uses_defaults(tmp_path, capsys):
+    rd = _fake_run(tmp_path, {})
+    (rd / "config.yaml").unlink()
+    assert main(["eval", str(rd), "--icp", "--json"]) == 0
+    proto = json.loads((rd / "metrics.json").read_text())["protocol"]
+    assert proto["n_samples"] == 200_000 and proto["alignment"] == "se3" and proto["icp"] is True
+
+
+def test_eval_traj_defaults(tmp_path, capsys):
+    rd = write_fake_run(tmp_path / "run", "hash", "direct", frames=12)
+    assert main(["eval", "--traj", str(rd / "trajectory.txt"), "--gt", str(rd / "trajectory_gt.txt"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["protocol"]["alignment"] == "se3"
+    assert out["protocol"]["association"]["max_diff_s"] == 0.02
+
+
+def test_scenes_lists_builtin_scenes(capsys):
+    assert main(["scenes"]) == 0
+    out = capsys.readouterr().out
+    for name in ("room", "cluttered", "thin"):
+        assert name in out
+
+
+def test_run_unknown_key_is_a_config_error(tmp_path, capsys):
+    assert main(["run", "--out", str(tmp_path / "run"), "--quiet", "slam.trak_iters=3"]) == 2
+    err = capsys.readouterr().err
+    assert "slam.trak_iters" in err and "slam.track_iters" in err
+    assert not (tmp_path / "run" / "trajectory.txt").exists()
+
+
+def test_config_prints_loadable_yaml(capsys):
+    assert main(["config", "--preset", "quick"]) == 0
+    cfg = yaml.safe_load(capsys.readouterr().out)
+    assert isinstance(cfg, dict)
+    assert set(cfg) >= {"data", "field", "render", "sampling", "loss", "slam", "mesh", "eval", "output", "seed",
+                        "device", "faithful"}
+    assert "track_iters" in cfg["slam"] and "n_samples" in cfg["eval"]
+
+
+def test_run_help_lists_every_encoding_and_renderer(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "--help"])
+    assert exc.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())  # undo argparse's line wrapping
+    for name in list(ENCODINGS.names()) + list(RENDERERS.names()):
+        assert f"{name} (" in text, name

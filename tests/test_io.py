@@ -1,0 +1,132 @@
+"""Atomic writers (`inrslam.io.atomic`) and TUM trajectory files (`inrslam.io.trajectory`)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import stat
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from inrslam.errors import DataError
+from inrslam.io.atomic import append_jsonl, atomic_path, write_json, write_text
+from inrslam.io.trajectory import read_tum, write_tum
+
+
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+@pytest.fixture
+def umask_022():
+    old = os.umask(0o022)
+    try:
+        yield 0o022
+    finally:
+        os.umask(old)
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX permissions")
+@pytest.mark.parametrize("mask", [0o022, 0o002, 0o077], ids=oct)
+def test_atomic_files_get_the_umask_permissions(tmp_path, mask):
+    old = os.umask(mask)
+    try:
+        write_text(tmp_path / "a.txt", "hello")
+        write_json(tmp_path / "b.json", {"x": 1})
+        (tmp_path / "c.txt").write_text("plain open()")  # what a non-atomic writer would give
+        assert _current_umask() == mask  # reading the umask restores it
+    finally:
+        os.umask(old)
+    for name in ("a.txt", "b.json", "c.txt"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o666 & ~mask, name
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX permissions")
+def test_overwrite_gets_umask_permissions(tmp_path, umask_022):
+    p = tmp_path / "a.txt"
+    write_text(p, "one")
+    write_text(p, "two")
+    assert p.read_text() == "two" and stat.S_IMODE(p.stat().st_mode) == 0o644
+
+
+def test_failure_inside_atomic_path_keeps_the_old_file(tmp_path):
+    p = tmp_path / "metrics.json"
+    write_text(p, "old")
+    with pytest.raises(RuntimeError, match="boom"):
+        with atomic_path(p) as tmp:
+            assert tmp.parent == p.parent and tmp.name.endswith(".json") and tmp != p
+            tmp.write_text("half-written")
+            raise RuntimeError("boom")
+    assert p.read_text() == "old"
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["metrics.json"]  # no temporary file left behind
+
+
+def test_atomic_path_creates_parent_folders(tmp_path):
+    p = tmp_path / "a" / "b" / "c.txt"
+    write_text(p, "x")
+    assert p.read_text() == "x" and sorted(x.name for x in p.parent.iterdir()) == ["c.txt"]
+
+
+def test_json_writers_turn_non_finite_into_null(tmp_path):
+    p = tmp_path / "m.json"
+    write_json(p, {"a": float("nan"), "b": [1.5, float("inf"), (float("-inf"), 2)], "c": {"d": math.nan}, "e": "s"})
+    assert json.loads(p.read_text()) == {"a": None, "b": [1.5, None, [None, 2]], "c": {"d": None}, "e": "s"}
+    assert "NaN" not in p.read_text() and "Infinity" not in p.read_text()
+    log = tmp_path / "log.jsonl"
+    append_jsonl(log, {"frame": 0, "loss": float("nan")})
+    append_jsonl(log, {"frame": 1, "loss": 0.25, "v": [float("inf")]})
+    lines = log.read_text().splitlines()
+    assert [json.loads(x) for x in lines] == [{"frame": 0, "loss": None}, {"frame": 1, "loss": 0.25, "v": [None]}]
+
+
+def _poses(n: int = 6) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 1.0, (n, 3))).as_matrix()
+    T[:, :3, 3] = rng.normal(0, 2.0, (n, 3))
+    return T
+
+
+def test_tum_round_trip_skips_non_finite_poses(tmp_path):
+    ts = np.arange(6) * 0.033 + 1305031102.175304
+    T = _poses()
+    T[2, 0, 3] = np.nan  # lost frame: not written
+    p = tmp_path / "traj.txt"
+    write_tum(p, ts, T, header="estimated c2w")
+    text = p.read_text().splitlines()
+    assert text[0] == "# estimated c2w" and text[1].startswith("# timestamp")
+    ts2, T2 = read_tum(p)
+    keep = np.array([0, 1, 3, 4, 5])
+    np.testing.assert_allclose(ts2, ts[keep], atol=1e-6)
+    np.testing.assert_allclose(T2, T[keep], atol=1e-8)
+    np.testing.assert_array_equal(T2[:, 3], np.tile([0, 0, 0, 1.0], (5, 1)))
+
+
+@pytest.mark.parametrize("body, match", [
+    ("0 1 2 3 0 0 0 1\n1 1 2 3 0 0 1\n", r"bad\.txt:3: expected 8 values .* got 7"),
+    ("0 1 2 3 0 0 0 1 9\n", r"bad\.txt:2: expected 8 values .* got 9"),
+    ("0 1 2 x 0 0 0 1\n", r"bad\.txt:2: non-numeric"),
+    ("0 1 2 nan 0 0 0 1\n", r"bad\.txt:2: non-finite"),
+    ("0 1 2 3 0 0 0 0\n", r"bad\.txt:2: zero quaternion"),
+    ("\n", r"bad\.txt: no poses"),
+])
+def test_read_tum_errors_name_file_and_line(tmp_path, body, match):
+    p = tmp_path / "bad.txt"
+    p.write_text("# timestamp tx ty tz qx qy qz qw\n" + body)
+    with pytest.raises(DataError, match=match):
+        read_tum(p)
+
+
+def test_read_tum_missing_file_and_commas(tmp_path):
+    with pytest.raises(DataError, match="not found"):
+        read_tum(tmp_path / "nope.txt")
+    p = tmp_path / "commas.txt"
+    p.write_text("0.5,1,2,3,0,0,0,2\n")  # comma separated, unnormalised quaternion
+    ts, T = read_tum(p)
+    assert ts.tolist() == [0.5] and np.allclose(T[0], np.array([[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3],
+                                                                [0, 0, 0, 1.0]]))
