@@ -71,7 +71,6 @@ class SamplingConfig:
     band: float = 1.0  # surface band half-width in units of T (reference code / faithful: 1.5)
     jitter: bool = True  # stratified jitter of the merged samples (fresh every call)
     variant: SamplingVariant = SamplingVariant.NONE  # sampling layout variant (spec §7.8)
-    edge_margin: int = 20  # pixels ignored at each image border when sampling tracking pixels
 
 
 @dataclass

@@ -19,6 +19,7 @@ from inrslam.config.loader import dump_config
 from inrslam.data.frame import Frame
 from inrslam.errors import ConfigError
 from inrslam.geometry.camera import pixel_directions
+from inrslam.rendering.sampling import sample_pixels
 from inrslam.io.atomic import append_jsonl, atomic_path, write_json, write_text
 from inrslam.io.trajectory import write_tum
 from inrslam.slam.keyframes import KeyframeStore
@@ -58,15 +59,13 @@ class FrameTensors:
         return pixel_directions(self.intr, u, v), self.rgb[idx], self.depth[idx]
 
     def sample(self, n: int, generator: torch.Generator, edge: int = 0):
-        """n pixels uniformly without replacement inside an `edge`-pixel border."""
+        """n distinct pixels uniformly inside an `edge`-pixel border (no border if it would leave none)."""
         H, W = self.intr.height, self.intr.width
-        h, w = H - 2 * edge, W - 2 * edge
-        if h <= 0 or w <= 0:
-            edge, h, w = 0, H, W
-        n = min(n, h * w)
-        flat = torch.randperm(h * w, generator=generator)[:n]
-        idx = (flat // w + edge) * W + (flat % w + edge)
-        return self.rays(idx.to(self.device))
+        if H - 2 * edge <= 0 or W - 2 * edge <= 0:
+            edge = 0
+        n = min(n, (H - 2 * edge) * (W - 2 * edge))
+        u, v = sample_pixels(H, W, n, edge, generator, self.device)
+        return self.rays(v * W + u)
 
 
 class SlamSystem:
