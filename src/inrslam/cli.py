@@ -77,6 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--gt-mesh", help="ground-truth mesh")
     e.add_argument("--cameras", help="GT camera poses (TUM file) for frustum + occlusion culling")
     e.add_argument("--intrinsics", help="fx,fy,cx,cy,width,height of the culling cameras")
+    e.add_argument("--virtual-cameras", help="extra (virtual) camera poses for culling, TUM file (Co-SLAM variant)")
+    e.add_argument("--cull-gt", action="store_true", help="also cull the GT mesh with the same cameras")
     e.add_argument("--icp", action="store_true", default=None,
                    help="ICP-align the reconstruction first (default: the run's eval.icp for RUN_DIR, off for --mesh)")
     e.add_argument("--json", action="store_true", help="print JSON instead of a table")

@@ -159,3 +159,31 @@ def test_evaluate_run_accepts_run_config_eval_section(run_dir):
     out = evaluate_run(rd, {"align": "none", "mesh_metrics": False}, write=False)
     assert out["ate_rmse_m"] == pytest.approx(ate(est[has_gt], gt[has_gt], "none")["rmse"], abs=1e-6)
     assert json.loads((rd / "metrics.json").read_text())["protocol"]["alignment"] == "sim3"  # write=False
+
+
+def test_virtual_cameras_and_gt_culling(tmp_path, make_plane, make_box, intr):
+    """A box behind the wall is invisible to the real cameras; a virtual camera behind the wall sees it.
+
+    GT = wall + box, reconstruction = wall only. Culling the GT with the real cameras removes the hidden box, so the
+    reconstruction is complete (Comp% = 1); adding a virtual camera that looks at the box brings it back (Comp% < 1).
+    """
+    wall = make_plane(1.0, 20, z=2.0)
+    gt = trimesh.util.concatenate([wall, make_box((0.4, 0.4, 0.4), (0, 0, 3.0))])
+    gt.export(tmp_path / "gt.ply")
+    wall.export(tmp_path / "rec.ply")
+    write_tum(tmp_path / "cams.txt", np.arange(N) * 0.1, _gt_poses())
+    base = dict(n_samples=20_000)
+    plain = eval_mesh_files(tmp_path / "rec.ply", tmp_path / "gt.ply", tmp_path / "cams.txt", intr, **base)
+    assert plain["comp_ratio"] < 0.9  # the unculled GT box counts as missed
+    culled = eval_mesh_files(tmp_path / "rec.ply", tmp_path / "gt.ply", tmp_path / "cams.txt", intr, cull_gt=True,
+                             **base)
+    assert culled["comp_ratio"] == 1.0 and culled["mesh_eval"]["gt_faces"] < len(gt.faces)
+    assert culled["protocol"]["culling"]["culled"] == "reconstructed and ground-truth meshes"
+    virt = np.eye(4)[None].copy()
+    virt[0, :3, 3] = [0.0, 0.0, 4.5]  # behind the box, looking back at it (OpenCV: +z forward -> rotate 180° about y)
+    virt[0, :3, :3] = np.diag([-1.0, 1.0, -1.0])
+    write_tum(tmp_path / "virt.txt", np.zeros(1), virt)
+    with_virt = eval_mesh_files(tmp_path / "rec.ply", tmp_path / "gt.ply", tmp_path / "cams.txt", intr, cull_gt=True,
+                                virtual_cameras=tmp_path / "virt.txt", **base)
+    assert with_virt["mesh_eval"]["cameras_used"] == culled["mesh_eval"]["cameras_used"] + 1
+    assert with_virt["comp_ratio"] < culled["comp_ratio"]

@@ -30,6 +30,8 @@ class EvalConfig:
     icp: bool = False  # point-to-point ICP of the reconstruction onto the GT mesh before the 3-D metrics
     seed: int = 0  # surface-sampling seed (reconstruction uses seed, GT uses seed + 1)
     mesh_metrics: bool = True  # compute Acc / Comp / Comp% when both meshes exist
+    virtual_cameras: str = ""  # TUM file of extra (virtual) camera poses added to the culling cameras (Co-SLAM)
+    cull_gt: bool = False  # also cull the GT mesh with the same cameras (unseen GT regions then do not count)
     enabled: bool = True  # evaluate at the end of a SLAM run
     heldout_every: int = 10  # held-out full-frame renders of every N-th frame (PSNR/SSIM/depth L1; 0 = off)
     heldout_max: int = 20  # at most this many held-out renders
@@ -64,7 +66,8 @@ class EvalConfig:
                 "eps": self.cull_eps,
                 "occlusion": self.cull_occlusion,
                 "cameras": "ground truth",
-                "culled": "reconstructed mesh",
+                "culled": "reconstructed and ground-truth meshes" if self.cull_gt else "reconstructed mesh",
+                "virtual_cameras": self.virtual_cameras or None,
             },
             "n_samples": self.n_samples,
             "threshold": self.threshold,

@@ -225,8 +225,8 @@ def cull_mesh(
        the mesh itself, ray cast double-sided, eps tolerance);
     3. keep a face iff (some vertex has in-frustum count > 0) and (some vertex has observed count > 0);
     4. drop unreferenced vertices (vertex colours follow).
-    With `occlusion=False` only the frustum test is applied. The Co-SLAM "virtual camera" variant is not
-    implemented.
+    With `occlusion=False` only the frustum test is applied. The Co-SLAM "virtual camera" variant is the same
+    with extra (virtual) poses appended to `c2ws` (`EvalConfig.virtual_cameras`, `inrslam.eval.run.culling_cameras`).
 
     Args:
         mesh: mesh to cull (not modified), metres.

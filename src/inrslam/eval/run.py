@@ -258,14 +258,18 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
 
 def _mesh_eval(rec: trimesh.Trimesh, gt: trimesh.Trimesh, cams: np.ndarray, intr: Intrinsics, cfg: EvalConfig,
                culled_out: Optional[PathLike] = None) -> dict:
-    culled = cull_mesh(rec, cams, intr, every=cfg.cull_every, eps=cfg.cull_eps, occlusion=cfg.cull_occlusion)
+    cams = culling_cameras(cams, cfg)
+    culled = cull_mesh(rec, cams, intr, every=1, eps=cfg.cull_eps, occlusion=cfg.cull_occlusion)
+    if cfg.cull_gt:
+        gt = cull_mesh(gt, cams, intr, every=1, eps=cfg.cull_eps, occlusion=cfg.cull_occlusion)
     if culled_out is not None:
         with atomic_path(culled_out) as tmp:
             culled.export(tmp)
     details = {
         "rec_faces": int(len(rec.faces)),
         "culled_faces": int(len(culled.faces)),
-        "cameras_used": int(len(cams[:: cfg.cull_every])),
+        "cameras_used": int(len(cams)),
+        "gt_faces": int(len(gt.faces)),
         "icp_transform": None,
         "icp_info": None,
     }
@@ -276,6 +280,15 @@ def _mesh_eval(rec: trimesh.Trimesh, gt: trimesh.Trimesh, cams: np.ndarray, intr
     details["icp_transform"] = m["icp_transform"]
     details["icp_info"] = m["icp_info"]
     return {"acc_m": m["acc_m"], "comp_m": m["comp_m"], "comp_ratio": m["comp_ratio"], "mesh_eval": details}
+
+
+def culling_cameras(gt_cams: np.ndarray, cfg: EvalConfig) -> np.ndarray:
+    """Every `cull_every`-th GT camera, plus all virtual cameras of `cfg.virtual_cameras` (TUM file) if given."""
+    cams = np.asarray(gt_cams, dtype=np.float64).reshape(-1, 4, 4)[:: cfg.cull_every]
+    if cfg.virtual_cameras:
+        _, virt = read_tum(cfg.virtual_cameras)
+        cams = np.concatenate([cams, virt])
+    return cams
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -319,6 +332,8 @@ def eval_mesh_files(
     icp: bool = False,
     seed: int = 0,
     culled_out: Optional[PathLike] = None,
+    virtual_cameras: Optional[PathLike] = None,
+    cull_gt: bool = False,
 ) -> dict:
     """Acc / Comp / Comp% of a reconstructed mesh file against a GT mesh file.
 
@@ -328,7 +343,8 @@ def eval_mesh_files(
     protocol.
     """
     cfg = EvalConfig(cull_every=every, cull_eps=eps, cull_occlusion=occlusion, n_samples=n_samples,
-                     threshold=threshold, icp=icp, seed=seed)
+                     threshold=threshold, icp=icp, seed=seed, virtual_cameras=str(virtual_cameras or ""),
+                     cull_gt=cull_gt)
     rec, gt = load_mesh(rec_path), load_mesh(gt_path)
     protocol = cfg.protocol()
     del protocol["alignment"], protocol["association"], protocol["rpe_delta"]
