@@ -118,6 +118,33 @@ class FolderDataset:
         raise NotImplementedError
 
     # --- shared -------------------------------------------------------------------------------------------------
+    def _set_numbered_frames(
+        self,
+        colour: dict[int, Path],
+        depth: dict[int, Path],
+        ids: Sequence[int],
+        poses: Sequence[tuple[np.ndarray, bool]],
+        time_from_number: bool,
+    ) -> None:
+        """Fill the per-frame lists of a layout whose files carry frame numbers (see `pair_numbered`).
+
+        Args:
+            colour, depth: {frame number: path}, as from `numbered_files`.
+            ids: the paired frame numbers, sorted.
+            poses: one (c2w (4, 4), valid) per frame of `ids`, as from `check_pose`.
+            time_from_number: True: timestamp = frame number / fps (the numbers are frame indices of the
+                capture, gaps included); False: timestamp = position in the sequence / fps.
+        """
+        self._rgb = [colour[n] for n in ids]
+        self._depth = [depth[n] for n in ids]
+        self._ids = np.array(ids, dtype=np.int64)
+        self._c2w = np.stack([T for T, _ in poses])
+        self._valid = np.array([ok for _, ok in poses])
+        if time_from_number:
+            self._timestamps = np.asarray(ids, dtype=np.float64) / self.fps
+        else:
+            self._timestamps = np.arange(len(ids), dtype=np.float64) / self.fps
+
     def _resolve_intrinsics(self, default: Optional[Intrinsics]) -> Intrinsics:
         """Override [fx, fy, cx, cy] or the layout default; image size from the first depth image header."""
         width, height = image_size(self._depth[0])

@@ -17,8 +17,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
-
 from inrslam.data.base import (
     FolderDataset,
     check_count,
@@ -71,17 +69,11 @@ class NeuralRGBDDataset(FolderDataset):
         pose_file = self.root / "poses.txt"
         raw, has_nan, first = read_pose_blocks(pose_file)
         check_count(len(ids), len(raw), pose_file)
-        c2w, valid = [], []
+        poses = []
         for k, (T, bad, line) in enumerate(zip(raw, has_nan, first)):
             T, ok = (NAN_POSE.copy(), False) if bad else check_pose(T, f"{pose_file}:{line}: pose {k}")
-            c2w.append(opengl_to_opencv(T) if ok else T)
-            valid.append(ok)
-        self._rgb = [colour[n] for n in ids]
-        self._depth = [depth[n] for n in ids]
-        self._ids = np.array(ids, dtype=np.int64)
-        self._c2w = np.stack(c2w)
-        self._valid = np.array(valid)
-        self._timestamps = np.arange(len(ids), dtype=np.float64) / self.fps
+            poses.append((opengl_to_opencv(T) if ok else T, ok))
+        self._set_numbered_frames(colour, depth, ids, poses, time_from_number=False)
         self.bounds = known_bounds(NEURALRGBD_BOUNDS, self.root.name)
         self.gt_mesh = first_existing(
             [self.root / "gt_mesh.ply", self.root / "mesh.ply", self.root.parent / f"{self.root.name}_mesh.ply"]

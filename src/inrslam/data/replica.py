@@ -17,8 +17,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
-
 from inrslam.data.base import (
     FolderDataset,
     check_count,
@@ -69,12 +67,7 @@ class ReplicaDataset(FolderDataset):
         raw = read_pose_rows(traj)
         check_count(len(ids), len(raw), traj)
         poses = [check_pose(T, f"{traj}:{k + 1}") for k, T in enumerate(raw)]
-        self._rgb = [colour[n] for n in ids]
-        self._depth = [depth[n] for n in ids]
-        self._ids = np.array(ids, dtype=np.int64)
-        self._c2w = np.stack([p for p, _ in poses])
-        self._valid = np.array([v for _, v in poses])
-        self._timestamps = np.arange(len(ids), dtype=np.float64) / self.fps
+        self._set_numbered_frames(colour, depth, ids, poses, time_from_number=False)
         self.bounds = known_bounds(REPLICA_BOUNDS, self.root.name)
         self.gt_mesh = first_existing([self.root.parent / f"{self.root.name}_mesh.ply", self.root / "mesh.ply"])
         cam_file = first_existing([self.root / "cam_params.json", self.root.parent / "cam_params.json"])

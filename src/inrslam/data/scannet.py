@@ -55,12 +55,7 @@ class ScanNetDataset(FolderDataset):
             )
         check_count(len(ids), len(pose_files), self.root / "pose")
         poses = [check_pose(read_pose_matrix(pose_files[n]), str(pose_files[n])) for n in ids]
-        self._rgb = [colour[n] for n in ids]
-        self._depth = [depth[n] for n in ids]
-        self._ids = np.array(ids, dtype=np.int64)
-        self._c2w = np.stack([p for p, _ in poses])
-        self._valid = np.array([v for _, v in poses])
-        self._timestamps = np.asarray(ids, dtype=np.float64) / self.fps
+        self._set_numbered_frames(colour, depth, ids, poses, time_from_number=True)
         self.gt_mesh = first_existing([self.root / f"{self.root.name}_vh_clean_2.ply", self.root / "mesh.ply"])
         k_file = self.root / "intrinsic" / "intrinsic_depth.txt"
         if self.cfg.intrinsics is not None:

@@ -81,12 +81,7 @@ class SevenScenesDataset(FolderDataset):
                 "(expected frame-NNNNNN.pose.txt for every frame)"
             )
         poses = [check_pose(read_pose_matrix(pose_files[n]), str(pose_files[n])) for n in ids]
-        self._rgb = [colour[n] for n in ids]
-        self._depth = [depth[n] for n in ids]
-        self._ids = np.array(ids, dtype=np.int64)
-        self._c2w = np.stack([p for p, _ in poses])
-        self._valid = np.array([v for _, v in poses])
-        self._timestamps = np.asarray(ids, dtype=np.float64) / self.fps
+        self._set_numbered_frames(colour, depth, ids, poses, time_from_number=True)
         self.gt_mesh = first_existing([self.root / "mesh.ply", folder / "mesh.ply"])
         width, height = image_size(self._depth[0])
         k_file = first_existing([folder / "camera-intrinsics.txt", self.root / "camera-intrinsics.txt"])

@@ -180,28 +180,26 @@ class HashGridField(_GridField):
     hashed = True
 
 
-@ENCODINGS.register("triplane", help="multi-resolution tri-plane (sum of xy, xz, yz planes), tanh SDF decoder")
-class TriPlaneField(EncoderField):
-    """F = Tri-plane (spec §3.6) with the plane decoder."""
-
+class _PlaneField(EncoderField):
     plane_style = True
+    encoder_type: type[TriPlaneEncoder] | type[TensoRFEncoder] = TriPlaneEncoder
 
     def make_encoder(self, coarse: float, fine: float) -> nn.Module:
         c = self.cfg
         sizes = plane_sizes(self.extent, coarse, fine, c.levels, c.faithful)
-        return TriPlaneEncoder(sizes, c.feature_dim, c.faithful, c.plane_init_std, c.kernel)
+        return self.encoder_type(sizes, c.feature_dim, c.faithful, c.plane_init_std, c.kernel)
+
+
+@ENCODINGS.register("triplane", help="multi-resolution tri-plane (sum of xy, xz, yz planes), tanh SDF decoder")
+class TriPlaneField(_PlaneField):
+    """F = Tri-plane (spec §3.6) with the plane decoder."""
 
 
 @ENCODINGS.register("tensorf", help="TensoRF vector-matrix factorisation (planes x lines), tanh SDF decoder")
-class TensoRFField(EncoderField):
+class TensoRFField(_PlaneField):
     """F = Fact. / TensoRF (spec §3.7; true VM by default) with the plane decoder."""
 
-    plane_style = True
-
-    def make_encoder(self, coarse: float, fine: float) -> nn.Module:
-        c = self.cfg
-        sizes = plane_sizes(self.extent, coarse, fine, c.levels, c.faithful)
-        return TensoRFEncoder(sizes, c.feature_dim, c.faithful, c.plane_init_std, c.kernel)
+    encoder_type = TensoRFEncoder
 
 
 class _HybridField(Field):

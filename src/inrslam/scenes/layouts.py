@@ -55,6 +55,19 @@ _POSTERS = [("astronaut", 1.0), ("chelsea", 451 / 300), ("coffee", 600 / 400), (
             ("hubble", 1000 / 872), ("ihc", 1.0), ("camera", 1.0)]
 
 
+def _room_box(rng: np.random.Generator, size: tuple[float, float, float],
+              jitter: tuple[float, float, float]) -> np.ndarray:
+    """(3, 2) extents of a room of about `size` (W, D, H) m, each jittered by +-`jitter`; centred in xy, floor at 0."""
+    W, D, H = (s + rng.uniform(-j, j) for s, j in zip(size, jitter))
+    return np.array([[-W / 2, W / 2], [-D / 2, D / 2], [0.0, H]])
+
+
+# the potted plant and the floor lamp look the same in every scene
+_POT = Material("brick", tint=(0.7, 0.4, 0.3), contrast=0.5, tile=(0.3, 0.3))
+_LEAVES = Material("grass", tint=(0.35, 0.6, 0.3), contrast=1.2, tile=(0.4, 0.4))
+_SHADE = Material("page", tint=(0.95, 0.9, 0.75), contrast=0.4, tile=(0.3, 0.3))
+
+
 def _textured_walls(rng: np.random.Generator) -> list[Material]:
     """Four wall materials from a palette of textured finishes, in seeded order."""
     palette = [
@@ -161,8 +174,7 @@ def _box_stack(b: GeometryBuilder, pl: fur.Placer, rng: np.random.Generator, mat
 def build_room(seed: int) -> SceneLayout:
     """A ~4 x 3.5 x 2.6 m room with a table and chairs in the middle, a bookshelf, a cabinet, boxes, plant, lamp."""
     rng = scene_rng(seed, "room")
-    W, D, H = 4.0 + rng.uniform(-0.1, 0.1), 3.5 + rng.uniform(-0.1, 0.1), 2.6 + rng.uniform(-0.04, 0.04)
-    room = np.array([[-W / 2, W / 2], [-D / 2, D / 2], [0.0, H]])
+    room = _room_box(rng, (4.0, 3.5, 2.6), (0.1, 0.1, 0.04))
     centre = rng.uniform(-0.08, 0.08, 2)
     path = random_loop(rng, centre, (rng.uniform(0.95, 1.05), rng.uniform(0.68, 0.76)), (1.4, 1.75), (*centre, 0.8),
                        yaw_amp=0.4, yaw_period=6.0)
@@ -203,11 +215,10 @@ def build_room(seed: int) -> SceneLayout:
         _box_stack(b, pl, rng, mats[:2] + mats[6:])
     c = pl.sample(rng, (0.23, 0.23), 0.7)
     if c is not None:
-        fur.plant(b, c, Material("brick", tint=(0.7, 0.4, 0.3), contrast=0.5, tile=(0.3, 0.3)),
-                  Material("grass", tint=(0.35, 0.6, 0.3), contrast=1.2, tile=(0.4, 0.4)))
+        fur.plant(b, c, _POT, _LEAVES)
     c = pl.sample(rng, (0.18, 0.18), 1.6)
     if c is not None:
-        fur.floor_lamp(b, c, 1.6, metal, Material("page", tint=(0.95, 0.9, 0.75), contrast=0.4, tile=(0.3, 0.3)))
+        fur.floor_lamp(b, c, 1.6, metal, _SHADE)
     _place_posters(b, pl, rng, int(rng.integers(2, 4)), 1.55, (0.6, 0.8))
     return SceneLayout("room", b.build(), path, default_frames=DEFAULT_FRAMES["room"])
 
@@ -216,8 +227,7 @@ def build_room(seed: int) -> SceneLayout:
 def build_cluttered(seed: int) -> SceneLayout:
     """A ~7 x 5 x 3 m storage / living room: shelves, cabinets, tables, chairs, box stacks, barrels, balls."""
     rng = scene_rng(seed, "cluttered")
-    W, D, H = 7.0 + rng.uniform(-0.15, 0.15), 5.0 + rng.uniform(-0.15, 0.15), 3.0 + rng.uniform(-0.05, 0.05)
-    room = np.array([[-W / 2, W / 2], [-D / 2, D / 2], [0.0, H]])
+    room = _room_box(rng, (7.0, 5.0, 3.0), (0.15, 0.15, 0.05))
     centre = rng.uniform(-0.15, 0.15, 2)
     path = random_loop(rng, centre, (rng.uniform(1.9, 2.1), rng.uniform(1.15, 1.3)), (1.4, 1.85), (*centre, 0.7),
                        yaw_amp=0.45, yaw_period=6.0)
@@ -273,11 +283,10 @@ def build_cluttered(seed: int) -> SceneLayout:
         s = rng.uniform(0.8, 1.3)
         c = pl.sample(rng, (0.25 * s, 0.25 * s), 0.7 * s)
         if c is not None:
-            fur.plant(b, c, Material("brick", tint=(0.7, 0.4, 0.3), contrast=0.5, tile=(0.3, 0.3)),
-                      Material("grass", tint=(0.35, 0.6, 0.3), contrast=1.2, tile=(0.4, 0.4)), s)
+            fur.plant(b, c, _POT, _LEAVES, s)
     c = pl.sample(rng, (0.18, 0.18), 1.7)
     if c is not None:
-        fur.floor_lamp(b, c, 1.7, metal, Material("page", tint=(0.95, 0.9, 0.75), contrast=0.4, tile=(0.3, 0.3)))
+        fur.floor_lamp(b, c, 1.7, metal, _SHADE)
     _place_posters(b, pl, rng, int(rng.integers(3, 5)), 1.7, (0.7, 1.0))
     return SceneLayout("cluttered", b.build(), path, default_frames=DEFAULT_FRAMES["cluttered"])
 
@@ -286,8 +295,8 @@ def build_cluttered(seed: int) -> SceneLayout:
 def build_thin(seed: int) -> SceneLayout:
     """A ~5 x 4 x 2.7 m room with near-uniform walls, floor-to-ceiling poles, a railing, thin panels and chairs."""
     rng = scene_rng(seed, "thin")
-    W, D, H = 5.0 + rng.uniform(-0.1, 0.1), 4.0 + rng.uniform(-0.1, 0.1), 2.7 + rng.uniform(-0.04, 0.04)
-    room = np.array([[-W / 2, W / 2], [-D / 2, D / 2], [0.0, H]])
+    room = _room_box(rng, (5.0, 4.0, 2.7), (0.1, 0.1, 0.04))
+    H = float(room[2, 1])
     centre = rng.uniform(-0.1, 0.1, 2)
     path = random_loop(rng, centre, (rng.uniform(1.3, 1.4), rng.uniform(0.9, 1.0)), (1.35, 1.75), (*centre, 0.8))
     base = np.array(rng.uniform(0.75, 0.9, 3))
