@@ -40,6 +40,9 @@ def test_eval_run_dir_explicit_flags_override_the_run(tmp_path, capsys):
     proto = json.loads((rd / "metrics.json").read_text())["protocol"]
     assert proto["alignment"] == "none" and proto["association"]["max_diff_s"] == 0.01
     assert proto["n_samples"] == 1234 and proto["icp"] is True  # not given: the run's values
+    assert main(["eval", str(rd), "--cull-gt", "--json"]) == 0
+    proto = json.loads((rd / "metrics.json").read_text())["protocol"]
+    assert proto["culling"]["culled"] == "reconstructed and ground-truth meshes"
 
 
 def test_eval_run_dir_without_config_uses_defaults(tmp_path, capsys):

@@ -248,7 +248,7 @@ def _eval_command(args) -> int:
 
             intr = Intrinsics(vals[0], vals[1], vals[2], vals[3], int(vals[4]), int(vals[5]))
         metrics = ev.eval_mesh_files(args.mesh, args.gt_mesh, cameras_path=args.cameras, intrinsics=intr,
-                                     icp=bool(args.icp))
+                                     icp=bool(args.icp), virtual_cameras=args.virtual_cameras, cull_gt=args.cull_gt)
     else:
         raise InrslamError("inrslam eval: give a RUN_DIR, or --traj/--gt, or --mesh/--gt-mesh")
     if args.json:
@@ -261,7 +261,7 @@ def _eval_command(args) -> int:
 def _run_eval_config(args):
     """Evaluation protocol of `inrslam eval RUN_DIR`: the run's own `eval` section (RUN_DIR/config.yaml, resolved
     without a preset, as it was written), or the default protocol when the run has no config.yaml; then the flags
-    the user gave explicitly (--align, --max-diff, --icp) on top."""
+    the user gave explicitly (--align, --max-diff, --icp, --virtual-cameras, --cull-gt) on top."""
     from dataclasses import replace
 
     from inrslam.config import load_config
@@ -275,6 +275,10 @@ def _run_eval_config(args):
         cfg = replace(cfg, max_time_diff=float(args.max_diff))
     if args.icp is not None:
         cfg = replace(cfg, icp=bool(args.icp))
+    if args.virtual_cameras:
+        cfg = replace(cfg, virtual_cameras=str(args.virtual_cameras))
+    if args.cull_gt:
+        cfg = replace(cfg, cull_gt=True)
     return cfg
 
 
