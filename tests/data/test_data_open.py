@@ -191,3 +191,17 @@ def test_replica_cam_params_json(tmp_path):
     (tmp_path / "cam_params.json").write_text("{not json")
     with pytest.raises(DataError, match="cam_params.json"):
         open_folder(lay.root)
+
+
+def test_estimated_bounds_spread_over_the_sequence(tmp_path):
+    """With fewer bounds frames than frames, the frames are spread over the sequence: the last camera is inside."""
+    lay = make_7scenes(tmp_path, n=6)
+    ds = open_dataset(DataConfig(path=str(lay.root), bounds_frames=2, bounds_margin=0.0, bounds=None))
+    lo, hi = ds.bounds[:, 0], ds.bounds[:, 1]
+    last = lay.poses[5][:3, 3]
+    assert np.all((last >= lo - 1e-9) & (last <= hi + 1e-9))
+    b = estimate_bounds(ds, n_frames=2, margin=0.0, percentile=0.0, points_per_frame=10**9)
+    used = [0, 5]
+    pts = np.concatenate([backproject_world(ds[i].depth, ds[i].intrinsics.K, ds[i].c2w) for i in used]
+                         + [np.stack([lay.poses[i][:3, 3] for i in used])])
+    np.testing.assert_allclose(b, np.stack([pts.min(0), pts.max(0)], 1), atol=1e-9)

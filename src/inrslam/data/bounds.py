@@ -1,4 +1,5 @@
-"""Scene bounds from the first depth frames and their ground-truth poses (when no table or config gives them)."""
+"""Scene bounds from depth frames spread over the sequence and their ground-truth poses (when no table or config
+gives them)."""
 
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ def estimate_bounds(
     percentile: float = 0.5,
     points_per_frame: int = 20000,
 ) -> np.ndarray:
-    """Axis-aligned scene box from the first `n_frames` frames.
+    """Axis-aligned scene box from `n_frames` frames evenly spread over the sequence (first and last included), so
+    a camera that travels still gets a box covering what it will see.
 
     Back-projects a pixel subsample of each frame's depth with its ground-truth pose (frames with an invalid pose
     are skipped, except frame 0 which then uses the identity), takes the `percentile` / 100 - `percentile`
@@ -39,7 +41,8 @@ def estimate_bounds(
         (3, 2) float64 [[xmin, xmax], [ymin, ymax], [zmin, zmax]], metres.
     """
     pts, centres = [], []
-    for i in range(min(max(n_frames, 1), len(dataset))):
+    idx = np.unique(np.linspace(0, len(dataset) - 1, min(max(n_frames, 1), len(dataset))).round().astype(int))
+    for i in idx.tolist():
         f = dataset[i]
         if f.pose_valid and np.all(np.isfinite(f.c2w)):
             c2w = f.c2w
@@ -54,7 +57,7 @@ def estimate_bounds(
     allp = np.concatenate(pts) if pts else np.zeros((0, 3))
     if len(allp) == 0:
         raise DataError(
-            f"{dataset.root}: cannot estimate scene bounds: no valid depth in the first {n_frames} frames; "
+            f"{dataset.root}: cannot estimate scene bounds: no valid depth in {len(idx)} frames spread over the sequence; "
             "set data.bounds"
         )
     lo = np.percentile(allp, percentile, axis=0)

@@ -20,7 +20,7 @@ class DataConfig:
     depth_scale: Optional[float] = None  # raw units per metre; None = per reader (replica 6553.5, tum 5000, else 1000)
     intrinsics: Optional[list[float]] = None  # [fx, fy, cx, cy] px of the files on disk; None = reader's
     bounds: Optional[list[list[float]]] = None  # [[xmin, xmax], [ymin, ymax], [zmin, zmax]] m; None = table/estimate
-    bounds_frames: int = 20  # number of first frames back-projected when estimating bounds
+    bounds_frames: int = 20  # frames (evenly spread over the sequence) back-projected when estimating bounds
     bounds_margin: float = 0.2  # metres added on every side of estimated bounds
     crop_edge: int = 0  # pixels removed on every image side (cx, cy shifted accordingly)
     depth_max: float = 0.0  # metres; depth beyond it is set to 0 (invalid); 0 = no clamp

@@ -50,7 +50,7 @@ def open_dataset(cfg: DataConfig) -> RGBDDataset:
     `builtin:NAME` loads a procedural scene (`inrslam.scenes.load_scene`); any other path is a folder read by the
     reader named in `cfg.dataset` or the detected one. Then start / stride / max_frames, crop_edge and depth_max are
     applied lazily, and bounds come from `cfg.bounds`, else the dataset (known scene tables), else
-    `estimate_bounds` over the first `cfg.bounds_frames` frames (attribute `bounds_estimated` tells which).
+    `estimate_bounds` over `cfg.bounds_frames` frames spread over the sequence (attribute `bounds_estimated` tells which).
     """
     bounds = _config_bounds(cfg.bounds)
     if cfg.path.startswith(BUILTIN_PREFIX):
