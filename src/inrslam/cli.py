@@ -264,11 +264,16 @@ def _run_eval_config(args):
     the user gave explicitly (--align, --max-diff, --icp, --virtual-cameras, --cull-gt) on top."""
     from dataclasses import replace
 
-    from inrslam.config import load_config
+    import yaml
+
+    from inrslam.config.loader import build_config
     from inrslam.eval.config import Alignment, EvalConfig
 
     cfg_path = Path(args.run_dir) / "config.yaml"
-    cfg = EvalConfig.from_any(load_config(cfg_path, preset=None).eval) if cfg_path.is_file() else EvalConfig()
+    cfg = EvalConfig()
+    if cfg_path.is_file():  # only the `eval:` section matters here (other sections may come from older versions)
+        section = (yaml.safe_load(cfg_path.read_text()) or {}).get("eval") or {}
+        cfg = build_config(EvalConfig, [(section, f"{cfg_path} (eval section)")])
     if args.align is not None:
         cfg = replace(cfg, align=Alignment(args.align))
     if args.max_diff is not None:
