@@ -3,7 +3,7 @@
     python benchmarks/bench_fields.py [--reps 3]
 
 Points are mapping-batch-like: rays (60 samples each) through a 6 x 5 x 3 m box. Times are medians over reps
-after one warm-up call (numba JIT is cached on disk). Peak memory = rise of the process's peak RSS
+after two warm-up calls per case (numba JIT is cached on disk). Peak memory = rise of the process's peak RSS
 (/proc/self/status VmHWM, reset through /proc/self/clear_refs) during one steady-state mapping step.
 """
 
@@ -36,8 +36,11 @@ def ray_points(n: int, seed: int = 0) -> torch.Tensor:
     return (o + d * t).reshape(-1, 3).contiguous()
 
 
-def timeit(fn, reps: int) -> float:
-    fn()
+def timeit(fn, reps: int, warmup: int = 2) -> float:
+    """Median wall time of fn over reps, after ``warmup`` untimed calls (numba cache load / JIT, one-time
+    workspaces and allocator growth are all paid there)."""
+    for _ in range(warmup):
+        fn()
     ts = []
     for _ in range(reps):
         t0 = time.perf_counter()
@@ -103,8 +106,12 @@ def main() -> None:
         print(f"{name:<38} {n:>7} {t_fused * 1e3:>10.1f} {t_ref * 1e3:>10.1f} {t_ref / t_fused:>7.1f}x  {extra}",
               flush=True)
 
+    try:
+        load = open("/proc/loadavg").read().split()[:3]
+    except OSError:
+        load = ["?"]
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}; numba threads "
-          f"{__import__('numba').get_num_threads()}")
+          f"{__import__('numba').get_num_threads()}; load average {' '.join(load)}")
     print(f"{'case':<38} {'points':>7} {'fused ms':>10} {'ref ms':>10} {'ratio':>8}")
     hash_enc = GridEncoder(EXT, 0.24, 0.02, 16, 2, True, 19, False, 1e-4, KernelChoice.NUMBA)
     tri_enc = TriPlaneEncoder(plane_sizes(EXT, 0.24, 0.02, 2, False), 2, False, 0.01, KernelChoice.NUMBA)

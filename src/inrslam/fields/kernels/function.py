@@ -14,6 +14,11 @@ from inrslam.fields.kernels.torch_interp import interp_torch
 DENSE_GRAD_MAX_ROWS = 1 << 16
 
 
+#: Sparse table gradients of trilinear tables up to this size (M·F·itemsize) are accumulated in a kept dense
+#: (M,F) scratch array and drained row-sorted (hash grids); larger ones (fine dense grids) use the row-slot kernels.
+ACCUMULATOR_MAX_BYTES = 64 << 20
+
+
 def workspace(spec: InterpSpec) -> np.ndarray:
     """The (M,) int32 scratch array (all −1 between uses) of the row-compaction kernels, created on first use."""
     ws = getattr(spec, "_slot", None)
@@ -21,6 +26,32 @@ def workspace(spec: InterpSpec) -> np.ndarray:
         ws = np.full(spec.total_rows, -1, dtype=np.int32)
         spec._slot = ws
     return ws
+
+
+def _accumulator(spec: InterpSpec, n_feat: int, dtype) -> tuple[np.ndarray, np.ndarray]:
+    """(acc (M,F), mark (M,) uint8) scratch of the accumulator table backward, all zero between uses."""
+    ws = getattr(spec, "_acc_ws", None)
+    if ws is None or ws[0].shape != (spec.total_rows, n_feat) or ws[0].dtype != np.dtype(dtype):
+        ws = (np.zeros((spec.total_rows, n_feat), dtype=dtype), np.zeros(spec.total_rows, np.uint8))
+        spec._acc_ws = ws
+    return ws
+
+
+def _sparse_workspace(spec: InterpSpec, n_points: int, n_feat: int, dtype) -> tuple[np.ndarray, ...]:
+    """(cap_off (E,), rows (C,) int32, values (C,F)) scratch of the sparse table backward, kept on the spec and
+    reused while it is large enough (capacity C = Σ_e min(N·2^D_e, rows_e)); never zeroed (kernels write on first
+    touch), so a backward pays neither a large allocation nor its page faults."""
+    caps = np.minimum(n_points * (1 << spec.ndim), spec.rows).astype(np.int64)
+    cap_off = np.zeros_like(caps)
+    cap_off[1:] = np.cumsum(caps)[:-1]
+    need = int(caps.sum())
+    ws = getattr(spec, "_sparse_ws", None)
+    if ws is None or ws[0].shape[0] < need or ws[1].shape[1] != n_feat or ws[1].dtype != np.dtype(dtype):
+        # grow to the largest capacity needed so far (capped by the table size)
+        cap = max(need, ws[0].shape[0] if ws is not None and ws[1].dtype == np.dtype(dtype) else 0)
+        ws = (np.empty(cap, np.int32), np.empty((cap, n_feat), dtype=dtype))  # rows < 2^31 (as the slots)
+        spec._sparse_ws = ws
+    return cap_off, ws[0], ws[1]
 
 
 def _meta(spec: InterpSpec):
@@ -51,22 +82,26 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dty
         else:
             nk.interp_backward_table_dense(xn, g, *_meta(spec), grad.numpy())
         return grad
-    N = xn.shape[0]
-    caps = np.minimum(N * (1 << spec.ndim), spec.rows).astype(np.int64)
-    cap_off = np.zeros_like(caps)
-    cap_off[1:] = np.cumsum(caps)[:-1]
-    out_rows = np.empty(int(caps.sum()), np.int64)
-    out_vals = np.zeros((int(caps.sum()), F), dtype=g.dtype)
     counts = np.zeros(spec.n_entries, np.int64)
+    if _is_trilinear(spec) and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
+        acc, mark = _accumulator(spec, F, g.dtype)
+        nk.tri_backward_table_acc(xn, g, *_tri_meta(spec), acc, mark, counts)
+        nnz = int(counts.sum())
+        rows = np.empty(nnz, np.int64)
+        vals = np.empty((nnz, F), dtype=g.dtype)
+        nk.drain_marked_rows(spec.rows, spec.row_off, counts, acc, mark, rows, vals)
+        values = torch.from_numpy(vals)
+        spec._unique_values_ptr = values.data_ptr()
+        return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], values, (M, F), check_invariants=False)
+    cap_off, out_rows, out_vals = _sparse_workspace(spec, xn.shape[0], F, g.dtype)
     if _is_trilinear(spec):
         nk.tri_backward_table_sparse(xn, g, *_tri_meta(spec), workspace(spec), cap_off, out_rows, out_vals, counts)
     else:
         nk.interp_backward_table_sparse(xn, g, *_meta(spec), workspace(spec), cap_off, out_rows, out_vals, counts)
-    if spec.n_entries == 1:
-        rows, vals = out_rows[: counts[0]], out_vals[: counts[0]]
-    else:
-        rows = np.concatenate([out_rows[o : o + c] for o, c in zip(cap_off, counts)])
-        vals = np.concatenate([out_vals[o : o + c] for o, c in zip(cap_off, counts)])
+    nnz = int(counts.sum())
+    rows = np.empty(nnz, np.int64)
+    vals = np.empty((nnz, F), dtype=g.dtype)
+    nk.compact_entries(cap_off, counts, out_rows, out_vals, rows, vals)
     values = torch.from_numpy(vals)
     spec._unique_values_ptr = values.data_ptr()  # lets the optimizer skip de-duplicating this exact gradient
     return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], values, (M, F), check_invariants=False)
@@ -82,9 +117,14 @@ class MultilinearFn(torch.autograd.Function):
     def forward(ctx, xn: torch.Tensor, table: torch.Tensor, spec: InterpSpec, sparse: bool) -> torch.Tensor:
         tab = table.detach()
         xn_np = xn.detach().contiguous().numpy()
+        ctx.jac = None
         if _is_trilinear(spec):
             out = torch.empty(xn.shape[0], spec.n_entries, tab.shape[1], dtype=tab.dtype)
-            nk.tri_forward(xn_np, tab.numpy(), *_tri_meta(spec), out.numpy())
+            if ctx.needs_input_grad[0]:  # one lookup for both: keep ∂out/∂xn for the input backward
+                ctx.jac = np.empty((xn.shape[0], spec.n_entries, tab.shape[1], 3), dtype=xn_np.dtype)
+                nk.tri_forward_jac(xn_np, tab.numpy(), *_tri_meta(spec), out.numpy(), ctx.jac)
+            else:
+                nk.tri_forward(xn_np, tab.numpy(), *_tri_meta(spec), out.numpy())
         else:
             out = torch.zeros(xn.shape[0], spec.n_entries, tab.shape[1], dtype=tab.dtype)
             nk.interp_forward(xn_np, tab.numpy(), *_meta(spec), out.numpy())
@@ -110,7 +150,9 @@ class MultilinearFn(torch.autograd.Function):
         gx = gt = None
         if need_x:
             gx64 = np.zeros((xn.shape[0], 3), np.float64)
-            if _is_trilinear(spec):
+            if ctx.jac is not None:
+                nk.tri_backward_x_jac(ctx.jac, g_np, gx64)
+            elif _is_trilinear(spec):
                 nk.tri_backward_x(xn_np, table.detach().numpy(), g_np, *_tri_meta(spec), gx64)
             else:
                 nk.interp_backward_x(xn_np, table.detach().numpy(), g_np, *_meta(spec), gx64)

@@ -67,6 +67,15 @@ def _setup(xn, n, e, ndim, axes, res, scale, offset):
 
 
 @njit(inline="always", cache=True)
+def _balanced(i, E):
+    """Entry handled by iteration i of a ``prange(E)``: 0, E−1, 1, E−2, … so that numba's static contiguous
+    chunks give every thread a mix of coarse (cheap) and fine (cache-missing) levels."""
+    if i % 2 == 0:
+        return i // 2
+    return E - 1 - i // 2
+
+
+@njit(inline="always", cache=True)
 def _corner(c, d, w0, w1, w2):
     """Bits of corner c and its per-axis factors t_k = (bit ? w_k : 1 − w_k) (1 for unused axes)."""
     b0 = c & 1
@@ -140,7 +149,8 @@ def interp_backward_table_dense(xn, g, ndim, axes, res, scale, offset, stride, h
     N = xn.shape[0]
     E = ndim.shape[0]
     F = grad.shape[1]
-    for e in prange(E):
+    for ie in prange(E):
+        e = _balanced(ie, E)
         base = row_off[e]
         for n in range(N):
             d, i0, i1, i2, w0, w1, w2, _d0, _d1, _d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
@@ -157,12 +167,13 @@ def interp_backward_table_dense(xn, g, ndim, axes, res, scale, offset, stride, h
 def interp_backward_table_sparse(xn, g, ndim, axes, res, scale, offset, stride, hashed, rows, row_off,
                                  slot, cap_off, out_rows, out_vals, counts):
     """Touched rows (non-zero interpolation weight) and their summed gradients, per entry: rows out_rows[cap_off[e] : cap_off[e] + counts[e]]
-    (unique, in first-touch order), values out_vals[same] (pre-zeroed). ``slot`` (M,) int32 must be all −1 on
+    (unique, in first-touch order), values out_vals[same] (written, need not be pre-zeroed). ``slot`` (M,) int32 must be all −1 on
     entry and is restored to −1 on exit; cost is O(N·2^D) per entry, independent of the table size."""
     N = xn.shape[0]
     E = ndim.shape[0]
     F = out_vals.shape[1]
-    for e in prange(E):
+    for ie in prange(E):
+        e = _balanced(ie, E)
         base = row_off[e]
         cb = cap_off[e]
         cnt = 0
@@ -176,13 +187,16 @@ def interp_backward_table_sparse(xn, g, ndim, axes, res, scale, offset, stride, 
                 r = base + _row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
                                 stride[e, 0], stride[e, 1], stride[e, 2])
                 s = slot[r]
-                if s < 0:
+                if s < 0:  # first touch: write (out_vals need not be zeroed)
                     s = cnt
                     slot[r] = cnt
                     out_rows[cb + cnt] = r
                     cnt += 1
-                for f in range(F):
-                    out_vals[cb + s, f] += wt * g[n, e, f]
+                    for f in range(F):
+                        out_vals[cb + s, f] = wt * g[n, e, f]
+                else:
+                    for f in range(F):
+                        out_vals[cb + s, f] += wt * g[n, e, f]
         counts[e] = cnt
         for k in range(cnt):
             slot[out_rows[cb + k]] = -1
@@ -348,7 +362,8 @@ def tri_backward_table_dense(xn, g, res, scale, offset, stride, hashed, rows, ro
     N = xn.shape[0]
     E = res.shape[0]
     F = grad.shape[1]
-    for e in prange(E):
+    for ie in prange(E):
+        e = _balanced(ie, E)
         for n in range(N):
             r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
                 xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
@@ -370,11 +385,12 @@ def _acc_sparse(slot, out_rows, out_vals, cb, cnt, r, wt, g, n, e, F):
     if wt == 0.0:  # zero-weight corner (e.g. a clamped point on the box face): not touched
         return cnt
     s = slot[r]
-    if s < 0:
-        s = cnt
+    if s < 0:  # first touch: write (out_vals need not be zeroed)
         slot[r] = cnt
         out_rows[cb + cnt] = r
-        cnt += 1
+        for f in range(F):
+            out_vals[cb + cnt, f] = wt * g[n, e, f]
+        return cnt + 1
     for f in range(F):
         out_vals[cb + s, f] += wt * g[n, e, f]
     return cnt
@@ -387,7 +403,8 @@ def tri_backward_table_sparse(xn, g, res, scale, offset, stride, hashed, rows, r
     N = xn.shape[0]
     E = res.shape[0]
     F = out_vals.shape[1]
-    for e in prange(E):
+    for ie in prange(E):
+        e = _balanced(ie, E)
         cb = cap_off[e]
         cnt = 0
         for n in range(N):
@@ -407,3 +424,151 @@ def tri_backward_table_sparse(xn, g, res, scale, offset, stride, hashed, rows, r
         counts[e] = cnt
         for k in range(cnt):
             slot[out_rows[cb + k]] = -1
+
+
+@njit(parallel=True, cache=True)
+def compact_entries(cap_off, counts, out_rows, out_vals, rows_dst, vals_dst):
+    """Concatenate the per-entry blocks out_rows/out_vals[cap_off[e] : cap_off[e] + counts[e]] into rows_dst /
+    vals_dst (of length Σ counts), entries in order (parallel over entries)."""
+    E = counts.shape[0]
+    F = out_vals.shape[1]
+    dst = np.zeros(E + 1, np.int64)
+    for e in range(E):
+        dst[e + 1] = dst[e] + counts[e]
+    for ie in prange(E):
+        e = _balanced(ie, E)
+        src = cap_off[e]
+        d0 = dst[e]
+        for k in range(counts[e]):
+            rows_dst[d0 + k] = out_rows[src + k]
+            for f in range(F):
+                vals_dst[d0 + k, f] = out_vals[src + k, f]
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def tri_forward_jac(xn, table, res, scale, offset, stride, hashed, rows, row_off, out, jac):
+    """``tri_forward`` that also writes the input Jacobian jac[n,e,f,a] = ∂out[n,e,f]/∂p̂_a ((N,E,F,3), clamped
+    axes 0), so that the input backward is the contraction ``tri_backward_x_jac`` instead of a second lookup."""
+    N = xn.shape[0]
+    E = res.shape[0]
+    F = table.shape[1]
+    for n in prange(N):
+        for e in range(E):
+            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz = _tri(
+                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
+            ux = 1.0 - wx
+            uy = 1.0 - wy
+            uz = 1.0 - wz
+            w0 = ux * uy * uz
+            w1 = wx * uy * uz
+            w2 = ux * wy * uz
+            w3 = wx * wy * uz
+            w4 = ux * uy * wz
+            w5 = wx * uy * wz
+            w6 = ux * wy * wz
+            w7 = wx * wy * wz
+            for f in range(F):
+                q0 = np.float64(table[r0, f])
+                q1 = np.float64(table[r1, f])
+                q2 = np.float64(table[r2, f])
+                q3 = np.float64(table[r3, f])
+                q4 = np.float64(table[r4, f])
+                q5 = np.float64(table[r5, f])
+                q6 = np.float64(table[r6, f])
+                q7 = np.float64(table[r7, f])
+                out[n, e, f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f] + w3 * table[r3, f]
+                                + w4 * table[r4, f] + w5 * table[r5, f] + w6 * table[r6, f] + w7 * table[r7, f])
+                jac[n, e, f, 0] = dx * (uy * uz * (q1 - q0) + wy * uz * (q3 - q2) + uy * wz * (q5 - q4)
+                                        + wy * wz * (q7 - q6))
+                jac[n, e, f, 1] = dy * (ux * uz * (q2 - q0) + wx * uz * (q3 - q1) + ux * wz * (q6 - q4)
+                                        + wx * wz * (q7 - q5))
+                jac[n, e, f, 2] = dz * (ux * uy * (q4 - q0) + wx * uy * (q5 - q1) + ux * wy * (q6 - q2)
+                                        + wx * wy * (q7 - q3))
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def tri_backward_x_jac(jac, g, gx):
+    """gx[n,a] = Σ_e Σ_f g[n,e,f] · jac[n,e,f,a]   (gx (N,3) float64, written)."""
+    N = jac.shape[0]
+    E = jac.shape[1]
+    F = jac.shape[2]
+    for n in prange(N):
+        ax = 0.0
+        ay = 0.0
+        az = 0.0
+        for e in range(E):
+            for f in range(F):
+                gf = np.float64(g[n, e, f])
+                ax += gf * jac[n, e, f, 0]
+                ay += gf * jac[n, e, f, 1]
+                az += gf * jac[n, e, f, 2]
+        gx[n, 0] = ax
+        gx[n, 1] = ay
+        gx[n, 2] = az
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Sparse table gradient through a dense accumulator (tables small enough to keep an (M,F) scratch array):
+# no per-row slot indirection or first-touch bookkeeping in the hot loop, rows come out sorted (coalesced).
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@njit(inline="always", cache=True)
+def _acc_mark(acc, mark, r, wt, g, n, e, F):
+    if wt != 0.0:  # zero-weight corner (e.g. a clamped point on the box face): not touched
+        mark[r] = 1
+        for f in range(F):
+            acc[r, f] += wt * g[n, e, f]
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def tri_backward_table_acc(xn, g, res, scale, offset, stride, hashed, rows, row_off, acc, mark, counts):
+    """acc[r_c] += w_c g[n,e] and mark[r_c] = 1 for every non-zero-weight corner (acc (M,F), mark (M,) uint8, both
+    all-zero on entry; parallel over levels, points serially in order); counts[e] = touched rows of level e."""
+    N = xn.shape[0]
+    E = res.shape[0]
+    F = acc.shape[1]
+    for ie in prange(E):
+        e = _balanced(ie, E)
+        for n in range(N):
+            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
+                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
+            ux = 1.0 - wx
+            uy = 1.0 - wy
+            uz = 1.0 - wz
+            _acc_mark(acc, mark, r0, ux * uy * uz, g, n, e, F)
+            _acc_mark(acc, mark, r1, wx * uy * uz, g, n, e, F)
+            _acc_mark(acc, mark, r2, ux * wy * uz, g, n, e, F)
+            _acc_mark(acc, mark, r3, wx * wy * uz, g, n, e, F)
+            _acc_mark(acc, mark, r4, ux * uy * wz, g, n, e, F)
+            _acc_mark(acc, mark, r5, wx * uy * wz, g, n, e, F)
+            _acc_mark(acc, mark, r6, ux * wy * wz, g, n, e, F)
+            _acc_mark(acc, mark, r7, wx * wy * wz, g, n, e, F)
+        c = 0
+        b = row_off[e]
+        for r in range(b, b + rows[e]):
+            c += mark[r]
+        counts[e] = c
+
+
+@njit(parallel=True, cache=True)
+def drain_marked_rows(rows, row_off, counts, acc, mark, rows_dst, vals_dst):
+    """Move the marked rows of acc to rows_dst / vals_dst (length Σ counts, ascending row order) and reset acc and
+    mark to zero there (parallel over entries)."""
+    E = counts.shape[0]
+    F = acc.shape[1]
+    dst = np.zeros(E + 1, np.int64)
+    for e in range(E):
+        dst[e + 1] = dst[e] + counts[e]
+    for ie in prange(E):
+        e = _balanced(ie, E)
+        k = dst[e]
+        b = row_off[e]
+        for r in range(b, b + rows[e]):
+            if mark[r]:
+                mark[r] = 0
+                rows_dst[k] = r
+                for f in range(F):
+                    vals_dst[k, f] = acc[r, f]
+                    acc[r, f] = 0.0
+                k += 1
