@@ -28,11 +28,15 @@ def workspace(spec: InterpSpec) -> np.ndarray:
     return ws
 
 
-def _accumulator(spec: InterpSpec, n_feat: int, dtype) -> tuple[np.ndarray, np.ndarray]:
-    """(acc (M,F), mark (M,) uint8) scratch of the accumulator table backward, all zero between uses."""
+def _accumulator(spec: InterpSpec, n_feat: int, dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(acc (M,F), mark_off (E,), mark bitmap uint8) scratch of the accumulator table backward, all zero between
+    uses; entry e's row bits start at byte mark_off[e] (byte-aligned per entry, so threads never share a byte)."""
     ws = getattr(spec, "_acc_ws", None)
     if ws is None or ws[0].shape != (spec.total_rows, n_feat) or ws[0].dtype != np.dtype(dtype):
-        ws = (np.zeros((spec.total_rows, n_feat), dtype=dtype), np.zeros(spec.total_rows, np.uint8))
+        nbytes = (spec.rows + 7) // 8
+        mark_off = np.zeros_like(nbytes)
+        mark_off[1:] = np.cumsum(nbytes)[:-1]
+        ws = (np.zeros((spec.total_rows, n_feat), dtype=dtype), mark_off, np.zeros(int(nbytes.sum()), np.uint8))
         spec._acc_ws = ws
     return ws
 
@@ -84,12 +88,12 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dty
         return grad
     counts = np.zeros(spec.n_entries, np.int64)
     if _is_trilinear(spec) and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
-        acc, mark = _accumulator(spec, F, g.dtype)
-        nk.tri_backward_table_acc(xn, g, *_tri_meta(spec), acc, mark, counts)
+        acc, mark_off, mark = _accumulator(spec, F, g.dtype)
+        nk.tri_backward_table_acc(xn, g, *_tri_meta(spec), mark_off, acc, mark, counts)
         nnz = int(counts.sum())
         rows = np.empty(nnz, np.int64)
         vals = np.empty((nnz, F), dtype=g.dtype)
-        nk.drain_marked_rows(spec.rows, spec.row_off, counts, acc, mark, rows, vals)
+        nk.drain_marked_rows(spec.rows, spec.row_off, mark_off, counts, acc, mark, rows, vals)
         values = torch.from_numpy(vals)
         spec._unique_values_ptr = values.data_ptr()
         return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], values, (M, F), check_invariants=False)
@@ -181,4 +185,7 @@ def multilinear(xn: torch.Tensor, table: torch.Tensor, spec: InterpSpec, backend
         raise ValueError(f"kernel='numba' supports float32/float64 tables, got {table.dtype}")
     if sparse is None:
         sparse = table.shape[0] > DENSE_GRAD_MAX_ROWS
-    return MultilinearFn.apply(xn.to(table.dtype), table, spec, bool(sparse))
+    xn = xn.to(table.dtype)
+    if not torch.is_grad_enabled():  # no graph is recorded: don't let the forward prepare an input backward
+        xn = xn.detach()
+    return MultilinearFn.apply(xn, table, spec, bool(sparse))

@@ -3,7 +3,11 @@
 Layout: points ``xn (N,3)`` normalised to [0,1] (float32 or float64), table ``T (M,F)``, output ``(N,E,F)``.
 Race freedom: the forward and the input backward parallelise over points (each point owns its output row);
 the table backward parallelises over entries, whose row ranges are disjoint, and loops over points serially
-inside an entry, so no two threads ever write the same table row.
+inside an entry, so no two threads ever write the same table row (entries are dealt to threads in the order
+0, E−1, 1, E−2, … so that each thread gets both cheap coarse and cache-missing fine levels).
+Trilinear kernels work in blocks of points: rows and weights first, then the gathers / scatters, which keeps many
+cache misses in flight. When the input gradient is needed, the forward also stores ∂out/∂p̂ so that the input
+backward is a contraction instead of a second lookup.
 """
 
 from __future__ import annotations
@@ -166,8 +170,9 @@ def interp_backward_table_dense(xn, g, ndim, axes, res, scale, offset, stride, h
 @njit(parallel=True, cache=True, fastmath=False)
 def interp_backward_table_sparse(xn, g, ndim, axes, res, scale, offset, stride, hashed, rows, row_off,
                                  slot, cap_off, out_rows, out_vals, counts):
-    """Touched rows (non-zero interpolation weight) and their summed gradients, per entry: rows out_rows[cap_off[e] : cap_off[e] + counts[e]]
-    (unique, in first-touch order), values out_vals[same] (written, need not be pre-zeroed). ``slot`` (M,) int32 must be all −1 on
+    """Touched rows (non-zero interpolation weight) and their summed gradients, per entry: rows
+    out_rows[cap_off[e] : cap_off[e] + counts[e]] (unique, in first-touch order), values out_vals[same] (written on
+    first touch, so they need not be pre-zeroed). ``slot`` (M,) int32 must be all −1 on
     entry and is restored to −1 on exit; cost is O(N·2^D) per entry, independent of the table size."""
     N = xn.shape[0]
     E = ndim.shape[0]
@@ -282,30 +287,79 @@ def _tri(xn, n, e, res, scale, offset, stride, hashed, rows, row_off):
     return r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz
 
 
+#: Points per block of the two-pass trilinear kernels: pass 1 computes the rows and weights of a block of points
+#: (arithmetic only), pass 2 gathers / scatters with independent loads, so many cache misses are in flight at once.
+_BLOCK = 64
+
+
+@njit(inline="always", cache=True)
+def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, stride, hashed, rows, row_off, R, W):
+    """R[j, e−e0, c] = r_c and W[j, e−e0, :] = (wx, wy, wz, dx, dy, dz) of points n0 + j < n1,
+    entries e0 .. e1−1."""
+    for n in range(n0, n1):
+        j = n - n0
+        for e in range(e0, e1):
+            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz = _tri(
+                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
+            k = e - e0
+            R[j, k, 0] = r0
+            R[j, k, 1] = r1
+            R[j, k, 2] = r2
+            R[j, k, 3] = r3
+            R[j, k, 4] = r4
+            R[j, k, 5] = r5
+            R[j, k, 6] = r6
+            R[j, k, 7] = r7
+            W[j, k, 0] = wx
+            W[j, k, 1] = wy
+            W[j, k, 2] = wz
+            W[j, k, 3] = dx
+            W[j, k, 4] = dy
+            W[j, k, 5] = dz
+
+
 @njit(parallel=True, cache=True, fastmath=False)
 def tri_forward(xn, table, res, scale, offset, stride, hashed, rows, row_off, out):
     """Trilinear multi-level lookup: out[n,e,:] = Σ_c w_c T[r_c, :]  ((N,E,F), written, not accumulated)."""
     N = xn.shape[0]
     E = res.shape[0]
     F = table.shape[1]
-    for n in prange(N):
-        for e in range(E):
-            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
-                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
-            ux = 1.0 - wx
-            uy = 1.0 - wy
-            uz = 1.0 - wz
-            w0 = ux * uy * uz
-            w1 = wx * uy * uz
-            w2 = ux * wy * uz
-            w3 = wx * wy * uz
-            w4 = ux * uy * wz
-            w5 = wx * uy * wz
-            w6 = ux * wy * wz
-            w7 = wx * wy * wz
-            for f in range(F):
-                out[n, e, f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f] + w3 * table[r3, f]
-                                + w4 * table[r4, f] + w5 * table[r5, f] + w6 * table[r6, f] + w7 * table[r7, f])
+    nb = (N + _BLOCK - 1) // _BLOCK
+    for b in prange(nb):
+        R = np.empty((_BLOCK, E, 8), np.int64)
+        W = np.empty((_BLOCK, E, 6), np.float64)
+        n0 = b * _BLOCK
+        n1 = min(N, n0 + _BLOCK)
+        _tri_block(xn, n0, n1, 0, E, res, scale, offset, stride, hashed, rows, row_off, R, W)
+        for n in range(n0, n1):
+            j = n - n0
+            for e in range(E):
+                wx = W[j, e, 0]
+                wy = W[j, e, 1]
+                wz = W[j, e, 2]
+                ux = 1.0 - wx
+                uy = 1.0 - wy
+                uz = 1.0 - wz
+                w0 = ux * uy * uz
+                w1 = wx * uy * uz
+                w2 = ux * wy * uz
+                w3 = wx * wy * uz
+                w4 = ux * uy * wz
+                w5 = wx * uy * wz
+                w6 = ux * wy * wz
+                w7 = wx * wy * wz
+                r0 = R[j, e, 0]
+                r1 = R[j, e, 1]
+                r2 = R[j, e, 2]
+                r3 = R[j, e, 3]
+                r4 = R[j, e, 4]
+                r5 = R[j, e, 5]
+                r6 = R[j, e, 6]
+                r7 = R[j, e, 7]
+                for f in range(F):
+                    out[n, e, f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f]
+                                    + w3 * table[r3, f] + w4 * table[r4, f] + w5 * table[r5, f]
+                                    + w6 * table[r6, f] + w7 * table[r7, f])
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -452,38 +506,59 @@ def tri_forward_jac(xn, table, res, scale, offset, stride, hashed, rows, row_off
     N = xn.shape[0]
     E = res.shape[0]
     F = table.shape[1]
-    for n in prange(N):
-        for e in range(E):
-            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz = _tri(
-                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
-            ux = 1.0 - wx
-            uy = 1.0 - wy
-            uz = 1.0 - wz
-            w0 = ux * uy * uz
-            w1 = wx * uy * uz
-            w2 = ux * wy * uz
-            w3 = wx * wy * uz
-            w4 = ux * uy * wz
-            w5 = wx * uy * wz
-            w6 = ux * wy * wz
-            w7 = wx * wy * wz
-            for f in range(F):
-                q0 = np.float64(table[r0, f])
-                q1 = np.float64(table[r1, f])
-                q2 = np.float64(table[r2, f])
-                q3 = np.float64(table[r3, f])
-                q4 = np.float64(table[r4, f])
-                q5 = np.float64(table[r5, f])
-                q6 = np.float64(table[r6, f])
-                q7 = np.float64(table[r7, f])
-                out[n, e, f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f] + w3 * table[r3, f]
-                                + w4 * table[r4, f] + w5 * table[r5, f] + w6 * table[r6, f] + w7 * table[r7, f])
-                jac[n, e, f, 0] = dx * (uy * uz * (q1 - q0) + wy * uz * (q3 - q2) + uy * wz * (q5 - q4)
-                                        + wy * wz * (q7 - q6))
-                jac[n, e, f, 1] = dy * (ux * uz * (q2 - q0) + wx * uz * (q3 - q1) + ux * wz * (q6 - q4)
-                                        + wx * wz * (q7 - q5))
-                jac[n, e, f, 2] = dz * (ux * uy * (q4 - q0) + wx * uy * (q5 - q1) + ux * wy * (q6 - q2)
-                                        + wx * wy * (q7 - q3))
+    nb = (N + _BLOCK - 1) // _BLOCK
+    for b in prange(nb):
+        R = np.empty((_BLOCK, E, 8), np.int64)
+        W = np.empty((_BLOCK, E, 6), np.float64)
+        n0 = b * _BLOCK
+        n1 = min(N, n0 + _BLOCK)
+        _tri_block(xn, n0, n1, 0, E, res, scale, offset, stride, hashed, rows, row_off, R, W)
+        for n in range(n0, n1):
+            j = n - n0
+            for e in range(E):
+                wx = W[j, e, 0]
+                wy = W[j, e, 1]
+                wz = W[j, e, 2]
+                dx = W[j, e, 3]
+                dy = W[j, e, 4]
+                dz = W[j, e, 5]
+                ux = 1.0 - wx
+                uy = 1.0 - wy
+                uz = 1.0 - wz
+                w0 = ux * uy * uz
+                w1 = wx * uy * uz
+                w2 = ux * wy * uz
+                w3 = wx * wy * uz
+                w4 = ux * uy * wz
+                w5 = wx * uy * wz
+                w6 = ux * wy * wz
+                w7 = wx * wy * wz
+                r0 = R[j, e, 0]
+                r1 = R[j, e, 1]
+                r2 = R[j, e, 2]
+                r3 = R[j, e, 3]
+                r4 = R[j, e, 4]
+                r5 = R[j, e, 5]
+                r6 = R[j, e, 6]
+                r7 = R[j, e, 7]
+                for f in range(F):
+                    q0 = np.float64(table[r0, f])
+                    q1 = np.float64(table[r1, f])
+                    q2 = np.float64(table[r2, f])
+                    q3 = np.float64(table[r3, f])
+                    q4 = np.float64(table[r4, f])
+                    q5 = np.float64(table[r5, f])
+                    q6 = np.float64(table[r6, f])
+                    q7 = np.float64(table[r7, f])
+                    out[n, e, f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f]
+                                    + w3 * table[r3, f] + w4 * table[r4, f] + w5 * table[r5, f]
+                                    + w6 * table[r6, f] + w7 * table[r7, f])
+                    jac[n, e, f, 0] = dx * (uy * uz * (q1 - q0) + wy * uz * (q3 - q2) + uy * wz * (q5 - q4)
+                                            + wy * wz * (q7 - q6))
+                    jac[n, e, f, 1] = dy * (ux * uz * (q2 - q0) + wx * uz * (q3 - q1) + ux * wz * (q6 - q4)
+                                            + wx * wz * (q7 - q5))
+                    jac[n, e, f, 2] = dz * (ux * uy * (q4 - q0) + wx * uy * (q5 - q1) + ux * wy * (q6 - q2)
+                                            + wx * wy * (q7 - q3))
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -514,47 +589,61 @@ def tri_backward_x_jac(jac, g, gx):
 
 
 @njit(inline="always", cache=True)
-def _acc_mark(acc, mark, r, wt, g, n, e, F):
+def _acc_mark(acc, mark, moff, base, r, wt, g, n, e, F):
     if wt != 0.0:  # zero-weight corner (e.g. a clamped point on the box face): not touched
-        mark[r] = 1
+        k = r - base
+        mark[moff + (k >> 3)] |= np.uint8(1 << (k & 7))
         for f in range(F):
             acc[r, f] += wt * g[n, e, f]
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def tri_backward_table_acc(xn, g, res, scale, offset, stride, hashed, rows, row_off, acc, mark, counts):
-    """acc[r_c] += w_c g[n,e] and mark[r_c] = 1 for every non-zero-weight corner (acc (M,F), mark (M,) uint8, both
-    all-zero on entry; parallel over levels, points serially in order); counts[e] = touched rows of level e."""
+def tri_backward_table_acc(xn, g, res, scale, offset, stride, hashed, rows, row_off, mark_off, acc, mark, counts):
+    """acc[r_c] += w_c g[n,e] and set the touched bit of r_c for every non-zero-weight corner (parallel over levels,
+    points serially in order). acc (M,F) all zero on entry; mark: one bit per row, level e's rows at bytes
+    mark_off[e] + (r − row_off[e]) // 8 (bit (r − row_off[e]) % 8; levels never share a byte), all zero on entry
+    (a bitmap is 1/64 of an (M,2) float32 table, so it stays in cache); counts[e] = touched rows of level e."""
     N = xn.shape[0]
     E = res.shape[0]
     F = acc.shape[1]
     for ie in prange(E):
         e = _balanced(ie, E)
-        for n in range(N):
-            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
-                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
-            ux = 1.0 - wx
-            uy = 1.0 - wy
-            uz = 1.0 - wz
-            _acc_mark(acc, mark, r0, ux * uy * uz, g, n, e, F)
-            _acc_mark(acc, mark, r1, wx * uy * uz, g, n, e, F)
-            _acc_mark(acc, mark, r2, ux * wy * uz, g, n, e, F)
-            _acc_mark(acc, mark, r3, wx * wy * uz, g, n, e, F)
-            _acc_mark(acc, mark, r4, ux * uy * wz, g, n, e, F)
-            _acc_mark(acc, mark, r5, wx * uy * wz, g, n, e, F)
-            _acc_mark(acc, mark, r6, ux * wy * wz, g, n, e, F)
-            _acc_mark(acc, mark, r7, wx * wy * wz, g, n, e, F)
+        base = row_off[e]
+        mo = mark_off[e]
+        R = np.empty((_BLOCK, 1, 8), np.int64)
+        W = np.empty((_BLOCK, 1, 6), np.float64)
+        for n0 in range(0, N, _BLOCK):
+            n1 = min(N, n0 + _BLOCK)
+            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, stride, hashed, rows, row_off, R, W)
+            for n in range(n0, n1):
+                j = n - n0
+                wx = W[j, 0, 0]
+                wy = W[j, 0, 1]
+                wz = W[j, 0, 2]
+                ux = 1.0 - wx
+                uy = 1.0 - wy
+                uz = 1.0 - wz
+                _acc_mark(acc, mark, mo, base, R[j, 0, 0], ux * uy * uz, g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 1], wx * uy * uz, g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 2], ux * wy * uz, g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 3], wx * wy * uz, g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 4], ux * uy * wz, g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 5], wx * uy * wz, g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 6], ux * wy * wz, g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 7], wx * wy * wz, g, n, e, F)
         c = 0
-        b = row_off[e]
-        for r in range(b, b + rows[e]):
-            c += mark[r]
+        for b in range(mo, mo + (rows[e] + 7) // 8):
+            m = mark[b]
+            while m:
+                c += 1
+                m &= m - np.uint8(1)
         counts[e] = c
 
 
 @njit(parallel=True, cache=True)
-def drain_marked_rows(rows, row_off, counts, acc, mark, rows_dst, vals_dst):
-    """Move the marked rows of acc to rows_dst / vals_dst (length Σ counts, ascending row order) and reset acc and
-    mark to zero there (parallel over entries)."""
+def drain_marked_rows(rows, row_off, mark_off, counts, acc, mark, rows_dst, vals_dst):
+    """Move the marked rows of acc (bitmap layout of ``tri_backward_table_acc``) to rows_dst / vals_dst (length
+    Σ counts, ascending row order) and reset acc and mark to zero there (parallel over entries)."""
     E = counts.shape[0]
     F = acc.shape[1]
     dst = np.zeros(E + 1, np.int64)
@@ -563,12 +652,19 @@ def drain_marked_rows(rows, row_off, counts, acc, mark, rows_dst, vals_dst):
     for ie in prange(E):
         e = _balanced(ie, E)
         k = dst[e]
-        b = row_off[e]
-        for r in range(b, b + rows[e]):
-            if mark[r]:
-                mark[r] = 0
-                rows_dst[k] = r
-                for f in range(F):
-                    vals_dst[k, f] = acc[r, f]
-                    acc[r, f] = 0.0
-                k += 1
+        base = row_off[e]
+        mo = mark_off[e]
+        for b in range(mo, mo + (rows[e] + 7) // 8):
+            m = mark[b]
+            if m == 0:
+                continue
+            mark[b] = 0
+            r0 = base + (b - mo) * 8
+            for bit in range(8):
+                if (m >> bit) & 1:
+                    r = r0 + bit
+                    rows_dst[k] = r
+                    for f in range(F):
+                        vals_dst[k, f] = acc[r, f]
+                        acc[r, f] = 0.0
+                    k += 1
