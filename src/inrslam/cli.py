@@ -201,13 +201,13 @@ def _scenes_command(args) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from inrslam.scenes import DEFAULT_SCENE, list_scenes
+    from inrslam.scenes import list_scenes
 
     t = Table(title="Built-in scenes (use --data builtin:NAME)")
     t.add_column("name")
     t.add_column("description")
     for name, desc in list_scenes():
-        t.add_row(name + (" (default)" if name == DEFAULT_SCENE else ""), desc)
+        t.add_row(name, desc)
     Console().print(t)
     return 0
 
