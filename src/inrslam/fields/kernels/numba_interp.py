@@ -287,6 +287,16 @@ def _tri(xn, n, e, res, scale, offset, stride, hashed, rows, row_off):
     return r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz
 
 
+@njit(inline="always", cache=True)
+def _tri_weights(wx, wy, wz):
+    """Trilinear corner weights in corner order c = x + 2y + 4z: w_c = prod_a (w_a if bit a of c else 1 - w_a)."""
+    ux = 1.0 - wx
+    uy = 1.0 - wy
+    uz = 1.0 - wz
+    return (ux * uy * uz, wx * uy * uz, ux * wy * uz, wx * wy * uz,
+            ux * uy * wz, wx * uy * wz, ux * wy * wz, wx * wy * wz)
+
+
 #: Points per block of the two-pass trilinear kernels: pass 1 computes the rows and weights of a block of points
 #: (arithmetic only), pass 2 gathers / scatters with independent loads, so many cache misses are in flight at once.
 _BLOCK = 64
@@ -337,17 +347,7 @@ def tri_forward(xn, table, res, scale, offset, stride, hashed, rows, row_off, ou
                 wx = W[j, e, 0]
                 wy = W[j, e, 1]
                 wz = W[j, e, 2]
-                ux = 1.0 - wx
-                uy = 1.0 - wy
-                uz = 1.0 - wz
-                w0 = ux * uy * uz
-                w1 = wx * uy * uz
-                w2 = ux * wy * uz
-                w3 = wx * wy * uz
-                w4 = ux * uy * wz
-                w5 = wx * uy * wz
-                w6 = ux * wy * wz
-                w7 = wx * wy * wz
+                w0, w1, w2, w3, w4, w5, w6, w7 = _tri_weights(wx, wy, wz)
                 r0 = R[j, e, 0]
                 r1 = R[j, e, 1]
                 r2 = R[j, e, 2]
@@ -421,17 +421,15 @@ def tri_backward_table_dense(xn, g, res, scale, offset, stride, hashed, rows, ro
         for n in range(N):
             r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
                 xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
-            ux = 1.0 - wx
-            uy = 1.0 - wy
-            uz = 1.0 - wz
-            _acc_dense(grad, r0, ux * uy * uz, g, n, e, F)
-            _acc_dense(grad, r1, wx * uy * uz, g, n, e, F)
-            _acc_dense(grad, r2, ux * wy * uz, g, n, e, F)
-            _acc_dense(grad, r3, wx * wy * uz, g, n, e, F)
-            _acc_dense(grad, r4, ux * uy * wz, g, n, e, F)
-            _acc_dense(grad, r5, wx * uy * wz, g, n, e, F)
-            _acc_dense(grad, r6, ux * wy * wz, g, n, e, F)
-            _acc_dense(grad, r7, wx * wy * wz, g, n, e, F)
+            w = _tri_weights(wx, wy, wz)
+            _acc_dense(grad, r0, w[0], g, n, e, F)
+            _acc_dense(grad, r1, w[1], g, n, e, F)
+            _acc_dense(grad, r2, w[2], g, n, e, F)
+            _acc_dense(grad, r3, w[3], g, n, e, F)
+            _acc_dense(grad, r4, w[4], g, n, e, F)
+            _acc_dense(grad, r5, w[5], g, n, e, F)
+            _acc_dense(grad, r6, w[6], g, n, e, F)
+            _acc_dense(grad, r7, w[7], g, n, e, F)
 
 
 @njit(inline="always", cache=True)
@@ -464,17 +462,15 @@ def tri_backward_table_sparse(xn, g, res, scale, offset, stride, hashed, rows, r
         for n in range(N):
             r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
                 xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
-            ux = 1.0 - wx
-            uy = 1.0 - wy
-            uz = 1.0 - wz
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r0, ux * uy * uz, g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r1, wx * uy * uz, g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r2, ux * wy * uz, g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r3, wx * wy * uz, g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r4, ux * uy * wz, g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r5, wx * uy * wz, g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r6, ux * wy * wz, g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r7, wx * wy * wz, g, n, e, F)
+            w = _tri_weights(wx, wy, wz)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r0, w[0], g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r1, w[1], g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r2, w[2], g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r3, w[3], g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r4, w[4], g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r5, w[5], g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r6, w[6], g, n, e, F)
+            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r7, w[7], g, n, e, F)
         counts[e] = cnt
         for k in range(cnt):
             slot[out_rows[cb + k]] = -1
@@ -525,14 +521,7 @@ def tri_forward_jac(xn, table, res, scale, offset, stride, hashed, rows, row_off
                 ux = 1.0 - wx
                 uy = 1.0 - wy
                 uz = 1.0 - wz
-                w0 = ux * uy * uz
-                w1 = wx * uy * uz
-                w2 = ux * wy * uz
-                w3 = wx * wy * uz
-                w4 = ux * uy * wz
-                w5 = wx * uy * wz
-                w6 = ux * wy * wz
-                w7 = wx * wy * wz
+                w0, w1, w2, w3, w4, w5, w6, w7 = _tri_weights(wx, wy, wz)
                 r0 = R[j, e, 0]
                 r1 = R[j, e, 1]
                 r2 = R[j, e, 2]
@@ -620,17 +609,15 @@ def tri_backward_table_acc(xn, g, res, scale, offset, stride, hashed, rows, row_
                 wx = W[j, 0, 0]
                 wy = W[j, 0, 1]
                 wz = W[j, 0, 2]
-                ux = 1.0 - wx
-                uy = 1.0 - wy
-                uz = 1.0 - wz
-                _acc_mark(acc, mark, mo, base, R[j, 0, 0], ux * uy * uz, g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 1], wx * uy * uz, g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 2], ux * wy * uz, g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 3], wx * wy * uz, g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 4], ux * uy * wz, g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 5], wx * uy * wz, g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 6], ux * wy * wz, g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 7], wx * wy * wz, g, n, e, F)
+                w = _tri_weights(wx, wy, wz)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 0], w[0], g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 1], w[1], g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 2], w[2], g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 3], w[3], g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 4], w[4], g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 5], w[5], g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 6], w[6], g, n, e, F)
+                _acc_mark(acc, mark, mo, base, R[j, 0, 7], w[7], g, n, e, F)
         c = 0
         for b in range(mo, mo + (rows[e] + 7) // 8):
             m = mark[b]
