@@ -56,6 +56,11 @@ def test_outputs_parse_and_trajectory_is_accurate(run_a):
     log = [json.loads(line) for line in (run_a / "log.jsonl").read_text().splitlines()]
     assert [r["frame"] for r in log if r["type"] == "track"] == list(range(1, FRAMES))
     assert [r["frame"] for r in log if r["type"] == "map"] == list(range(5, FRAMES, 5))
+    # the relative trajectory (spec §7.6): same timestamps, keyframes identical, evaluated as well
+    ts_rel, rel = read_tum(run_a / "trajectory_relative.txt")
+    kfs = json.loads((run_a / "keyframes.json").read_text())["keyframes"]
+    assert np.allclose(ts_rel, ts) and np.allclose(rel[kfs], est[kfs], atol=1e-6)
+    assert metrics["ate_relative_rmse_m"] is not None and metrics["ate_relative_rmse_m"] < 0.02
 
 
 def test_resolved_config_reproduces_run(run_a):
@@ -70,7 +75,8 @@ def test_determinism_same_seed(run_a, tmp_path):
 
 def test_killed_run_resumes_to_identical_result(run_a, tmp_path):
     out = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "inrslam.cli", "run", "--preset", "quick", "--out", str(out), "--quiet", *OVERRIDES]
+    cmd = [sys.executable, "-m", "inrslam.cli", "run", "--preset", "quick", "--out", str(out), "--quiet", *OVERRIDES,
+           "output.tensorboard=true"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     ckpt = out / "checkpoints" / "latest.pt"
     deadline = time.time() + 300
@@ -85,10 +91,32 @@ def test_killed_run_resumes_to_identical_result(run_a, tmp_path):
     assert not (out / "metrics.json").exists()
     resume_slam(out)
     assert (out / "trajectory.txt").read_text() == (run_a / "trajectory.txt").read_text()
+    assert (out / "trajectory_relative.txt").read_text() == (run_a / "trajectory_relative.txt").read_text()
     log_a = (run_a / "log.jsonl").read_text().splitlines()
     log_b = (out / "log.jsonl").read_text().splitlines()
     strip = lambda lines: [{k: v for k, v in json.loads(l).items() if not k.endswith("_ms")} for l in lines]
     assert strip(log_b) == strip(log_a)
+    _assert_tensorboard_steps_once(out / "tensorboard", "track/loss", list(range(1, FRAMES)))
+
+
+def _assert_tensorboard_steps_once(logdir: Path, tag: str, steps: list[int]) -> None:
+    """TensorBoard shows each step of `tag` once: the resumed writer's event file starts with an explicit purge
+    (SessionLog START at the checkpointed frame) of what the killed run logged after its checkpoint."""
+    try:
+        from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+        from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+        from tensorboard.compat.proto.event_pb2 import SessionLog
+    except ImportError:
+        return  # tensorboard is optional; the trajectory/log checks above still ran
+    files = sorted(logdir.glob("events.out.tfevents.*"), key=lambda p: p.stat().st_mtime)
+    assert len(files) == 2  # the killed segment and the resumed one
+    resumed = [e for e in EventFileLoader(str(files[1])).Load()]
+    first_step = min(e.step for e in resumed if e.HasField("summary"))
+    starts = [e.step for e in resumed if e.HasField("session_log") and e.session_log.status == SessionLog.START]
+    assert starts == [first_step]  # purge from the first frame processed after the checkpoint on
+    acc = EventAccumulator(str(logdir), purge_orphaned_data=True)
+    acc.Reload()
+    assert [e.step for e in acc.Scalars(tag)] == steps
 
 
 def _logged_frames(out: Path) -> int:

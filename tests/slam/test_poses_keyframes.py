@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 from inrslam.geometry.se3 import compose_qt, matrix_to_quat, se3_exp
 from inrslam.slam.config import PoseParam
 from inrslam.slam.keyframes import KeyframeStore
-from inrslam.slam.poses import PoseSet, constant_velocity
+from inrslam.slam.poses import PoseSet, constant_velocity, relative_trajectory
 
 
 def random_poses(n, seed=0):
@@ -75,3 +75,25 @@ def test_keyframe_store_sampling_and_state_roundtrip():
     g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
     a, b = store.sample(100, g1), other.sample(100, g2)
     assert all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+def test_relative_trajectory_carries_non_keyframes_with_their_refined_keyframe():
+    """Frames 1, 2 were tracked relative to keyframe 0, frame 4 relative to keyframe 3; bundle adjustment then moved
+    the keyframes. Keyframes keep their refined pose, the others keep their tracked offset to it."""
+    tracked = random_poses(5, seed=1).numpy()
+    rel_kf = np.array([-1, 0, 0, -1, 3])
+    rel = np.full((5, 4, 4), np.nan)
+    for i in (1, 2):
+        rel[i] = np.linalg.inv(tracked[0]) @ tracked[i]
+    rel[4] = np.linalg.inv(tracked[3]) @ tracked[4]
+    refined = tracked.copy()
+    delta = random_poses(2, seed=2).numpy()
+    refined[0] = delta[0] @ tracked[0]
+    refined[3] = delta[1] @ tracked[3]
+    out = relative_trajectory(refined, rel, rel_kf, keyframes=[0, 3])
+    assert np.allclose(out[[0, 3]], refined[[0, 3]])  # keyframes unchanged
+    for i, k in ((1, 0), (2, 0), (4, 3)):  # the keyframe's correction moves its frames rigidly
+        assert np.allclose(out[i], delta[0 if k == 0 else 1] @ tracked[i])
+        assert np.allclose(np.linalg.inv(out[k]) @ out[i], np.linalg.inv(tracked[k]) @ tracked[i])
+    # without refinement the relative trajectory is the absolute one
+    assert np.allclose(relative_trajectory(tracked, rel, rel_kf, [0, 3]), tracked)

@@ -36,6 +36,7 @@ RESULT_KEYS = (
     "rpe_trans_m",
     "rpe_rot_deg",
     "ate_keyframes_rmse_m",
+    "ate_relative_rmse_m",
     "acc_m",
     "comp_m",
     "comp_ratio",
@@ -220,6 +221,12 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
             res.update(trajectory_metrics(est, gt_full, rows, cfg.align, cfg.rpe_delta))
             if res["ate_n_used"] == 0:
                 notes.append(f"ATE: no estimated timestamp within {cfg.max_time_diff} s of a GT timestamp")
+            rel_path = run_dir / "trajectory_relative.txt"
+            if rel_path.is_file():  # spec §7.6: non-keyframes carried along by their keyframe's refinement
+                ts_rel, est_rel = read_tum(rel_path)
+                rel_gt = _associated_gt(ts_rel, ts_gt, gt, cfg.max_time_diff)
+                res["ate_relative_rmse_m"] = trajectory_metrics(est_rel, rel_gt, None, cfg.align, cfg.rpe_delta)[
+                    "ate_rmse_m"]
         else:
             notes.append("trajectory_gt.txt missing: no ATE/RPE")
     else:
@@ -375,6 +382,7 @@ _DISPLAY = {
     "ate_median_m": ("ATE median", "cm", 100.0),
     "ate_max_m": ("ATE max", "cm", 100.0),
     "ate_keyframes_rmse_m": ("ATE RMSE (keyframes)", "cm", 100.0),
+    "ate_relative_rmse_m": ("ATE RMSE (relative traj.)", "cm", 100.0),
     "rpe_trans_m": ("RPE trans. RMSE", "cm", 100.0),
     "rpe_rot_deg": ("RPE rot. RMSE", "deg", 1.0),
     "acc_m": ("Accuracy", "cm", 100.0),

@@ -7,6 +7,7 @@ Two parameterisations (`PoseParam`):
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -45,3 +46,16 @@ def constant_velocity(prev: Tensor, prev2: Tensor | None) -> Tensor:
     if prev2 is None:
         return prev.clone()
     return prev @ torch.linalg.inv(prev2) @ prev
+
+
+def relative_trajectory(est: np.ndarray, rel: np.ndarray, rel_kf: np.ndarray, keyframes) -> np.ndarray:
+    """The "relative" trajectory of spec §7.6 (Co-SLAM's): keyframes keep their (bundle-adjusted) pose; every other
+    frame i with a reference rel_kf[i] >= 0 becomes est[rel_kf[i]] @ rel[i], its tracked pose relative to that
+    keyframe carried along by the keyframe's refinement. est, rel (N,4,4) c2w; rel_kf (N,) int; returns (N,4,4)."""
+    out = est.copy()
+    kfs = set(int(k) for k in keyframes)
+    for i in range(est.shape[0]):
+        k = int(rel_kf[i])
+        if i not in kfs and k >= 0 and np.isfinite(rel[i]).all():
+            out[i] = est[k] @ rel[i]
+    return out

@@ -26,7 +26,7 @@ from inrslam.slam.keyframes import KeyframeStore
 from inrslam.slam.mapping import initialise, map_frame
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import SceneModel
-from inrslam.slam.poses import constant_velocity
+from inrslam.slam.poses import constant_velocity, relative_trajectory
 from inrslam.slam.tracking import track_frame
 
 CHECKPOINT = "checkpoints/latest.pt"
@@ -92,6 +92,9 @@ class SlamSystem:
         self.optimizers = self.model.make_optimizers(cfg.slam.map_lr)
         self.store = KeyframeStore(device=self.device)
         self.est = torch.full((self.n_frames, 4, 4), float("nan"), dtype=torch.float32, device=self.device)
+        # relative bookkeeping (spec §7.6): tracked pose of frame i in the frame of the latest keyframe rel_kf[i]
+        self.rel = torch.full((self.n_frames, 4, 4), float("nan"), dtype=torch.float32, device=self.device)
+        self.rel_kf = np.full(self.n_frames, -1, dtype=np.int64)
         self.gt = np.full((self.n_frames, 4, 4), np.nan)
         self.timestamps = np.zeros(self.n_frames)
         self.next_frame = 0
@@ -115,14 +118,16 @@ class SlamSystem:
                 if isinstance(v, (int, float)) and k != "frame" and math.isfinite(v):
                     self.tb.add_scalar(f"{record.get('type', 'log')}/{k}", v, step)
 
-    def _open_tensorboard(self) -> None:
+    def _open_tensorboard(self, resume: bool = False) -> None:
+        """TensorBoard writer (optional). On resume, events from the checkpointed frame on are purged, so that
+        the records logged again after the checkpoint do not show twice."""
         if not self.cfg.output.tensorboard:
             return
         try:
             from torch.utils.tensorboard import SummaryWriter
         except Exception:  # tensorboard not installed: optional
             return
-        self.tb = SummaryWriter(str(self.out / "tensorboard"))
+        self.tb = SummaryWriter(str(self.out / "tensorboard"), purge_step=self.next_frame if resume else None)
 
     def _keyframe_fraction(self) -> float:
         return 0.005 if self.cfg.slam.keyframe_variant else self.cfg.slam.keyframe_fraction
@@ -159,6 +164,7 @@ class SlamSystem:
             "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
             "store": self.store.state_dict(),
             "est": self.est.cpu(),
+            "rel": self.rel.cpu(), "rel_kf": self.rel_kf,
             "gt": self.gt,
             "timestamps": self.timestamps,
             "generator": self.generator.get_state(),
@@ -183,6 +189,8 @@ class SlamSystem:
             o.load_state_dict(st["optimizers"][k])
         self.store.load_state_dict(st["store"])
         self.est = st["est"].to(self.device)
+        if "rel" in st:  # checkpoints from before the relative trajectory lack it (those frames stay absolute)
+            self.rel, self.rel_kf = st["rel"].to(self.device), st["rel_kf"]
         self.gt, self.timestamps = st["gt"], st["timestamps"]
         self.generator.set_state(st["generator"])
         self.track_ms, self.map_ms, self.init_ms = st["track_ms"], st["map_ms"], st["init_ms"]
@@ -205,7 +213,7 @@ class SlamSystem:
             write_text(self.out / "config.yaml", dump_config(self.cfg))
             (self.out / "log.jsonl").write_text("")
         self.write_run_info("running")
-        self._open_tensorboard()
+        self._open_tensorboard(resume)
         self._t_start = time.perf_counter()
         ck_every = self.cfg.slam.checkpoint_every
         for i in range(self.next_frame, self.n_frames):
@@ -263,6 +271,9 @@ class SlamSystem:
         track_ms = (time.perf_counter() - t0) * 1e3
         self.track_ms.append(track_ms)
         self.est[i] = c2w
+        kf = self.store.frame_ids[-1]
+        self.rel[i] = torch.linalg.inv(self.est[kf]) @ c2w
+        self.rel_kf[i] = kf
         rec = {"type": "track", "frame": i, "loss": loss, "track_ms": track_ms, "iters": iters}
         if fallback:
             rec["fallback"] = fallback
@@ -329,6 +340,9 @@ class SlamSystem:
 
         est = self.est.double().cpu().numpy()
         write_tum(self.out / "trajectory.txt", self.timestamps, est, header="inrslam estimated c2w (OpenCV axes)")
+        write_tum(self.out / "trajectory_relative.txt", self.timestamps,
+                  relative_trajectory(est, self.rel.double().cpu().numpy(), self.rel_kf, self.store.frame_ids),
+                  header="inrslam estimated c2w, non-keyframes relative to their refined keyframe (spec 7.6)")
         if np.isfinite(self.gt).all(axis=(1, 2)).any():
             write_tum(self.out / "trajectory_gt.txt", self.timestamps, self.gt, header="ground-truth c2w (OpenCV axes)")
         write_json(self.out / "keyframes.json", {"keyframes": list(self.store.frame_ids)})

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import torch
 
@@ -41,11 +42,25 @@ def _accumulator(spec: InterpSpec, n_feat: int, dtype) -> tuple[np.ndarray, np.n
     return ws
 
 
-def _sparse_workspace(spec: InterpSpec, n_points: int, n_feat: int, dtype) -> tuple[np.ndarray, ...]:
-    """(cap_off (E,), rows (C,) int32, values (C,F)) scratch of the sparse table backward, kept on the spec and
-    reused while it is large enough (capacity C = Σ_e min(N·2^D_e, rows_e)); never zeroed (kernels write on first
-    touch), so a backward pays neither a large allocation nor its page faults."""
-    caps = np.minimum(n_points * (1 << spec.ndim), spec.rows).astype(np.int64)
+#: Row-block size (log2) of the row parts of the trilinear sparse backward (see ``_row_parts``).
+PART_LOG2 = 12
+
+
+def _row_parts(spec: InterpSpec) -> int:
+    """Row parts P per entry of the trilinear sparse backward: one per thread when there are too few entries to
+    keep every thread busy (a 2-level dense grid), else 1 (entries alone balance the load)."""
+    threads = numba.get_num_threads()
+    return threads if spec.n_entries < 2 * threads else 1
+
+
+def _sparse_workspace(spec: InterpSpec, n_points: int, n_feat: int, dtype, parts: int = 1) -> tuple[np.ndarray, ...]:
+    """(cap_off (P·E,), rows (C,) int32, values (C,F)) scratch of the sparse table backward, kept on the spec and
+    reused while it is large enough; item i = p·E + e holds at most min(N·2^D_e, rows of part p of entry e) rows
+    (blocks of 2^PART_LOG2 rows dealt round-robin to P parts). Never zeroed (kernels write on first touch), so a
+    backward pays neither a large allocation nor its page faults."""
+    blk = 1 << PART_LOG2
+    part_rows = spec.rows if parts == 1 else -(-spec.rows // blk) // parts * blk + blk
+    caps = np.tile(np.minimum(n_points * (1 << spec.ndim), np.minimum(part_rows, spec.rows)), parts).astype(np.int64)
     cap_off = np.zeros_like(caps)
     cap_off[1:] = np.cumsum(caps)[:-1]
     need = int(caps.sum())
@@ -97,10 +112,14 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dty
         values = torch.from_numpy(vals)
         spec._unique_values_ptr = values.data_ptr()
         return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], values, (M, F), check_invariants=False)
-    cap_off, out_rows, out_vals = _sparse_workspace(spec, xn.shape[0], F, g.dtype)
     if _is_trilinear(spec):
-        nk.tri_backward_table_sparse(xn, g, *_tri_meta(spec), workspace(spec), cap_off, out_rows, out_vals, counts)
+        parts = _row_parts(spec)
+        cap_off, out_rows, out_vals = _sparse_workspace(spec, xn.shape[0], F, g.dtype, parts)
+        counts = np.zeros(spec.n_entries * parts, np.int64)
+        nk.tri_backward_table_sparse(xn, g, *_tri_meta(spec), workspace(spec), parts, PART_LOG2, cap_off, out_rows,
+                                     out_vals, counts)
     else:
+        cap_off, out_rows, out_vals = _sparse_workspace(spec, xn.shape[0], F, g.dtype)
         nk.interp_backward_table_sparse(xn, g, *_meta(spec), workspace(spec), cap_off, out_rows, out_vals, counts)
     nnz = int(counts.sum())
     rows = np.empty(nnz, np.int64)

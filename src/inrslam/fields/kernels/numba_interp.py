@@ -17,6 +17,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from inrslam.fields.kernels.prefetch import prefetch_row, prefetch_row_w
+
 _P1 = np.int64(2654435761)
 _P2 = np.int64(805459861)
 
@@ -228,13 +230,23 @@ def unique_rows_sum(rows, vals, slot, out_rows, out_vals):
     return cnt
 
 
+#: Rows prefetched ahead by ``lazy_adam_rows``.
+_ADAM_AHEAD = 16
+
+
 @njit(parallel=True, cache=True, fastmath=False)
 def lazy_adam_rows(p, m, v, rows, g, step_size, beta1, beta2, eps, bc2_sqrt):
     """Adam on the given (unique) rows only:
     m_r ← β1 m_r + (1−β1) g_r;  v_r ← β2 v_r + (1−β2) g_r²;  p_r ← p_r − step_size · m_r / (√v_r / √bc2 + ε),
     step_size = lr / (1 − β1^t), bc2 = 1 − β2^t (torch.optim.Adam's formula)."""
     F = p.shape[1]
-    for k in prange(rows.shape[0]):
+    K = rows.shape[0]
+    for k in prange(K):
+        if k + _ADAM_AHEAD < K:  # rows are scattered over a large table: fetch a few rows ahead
+            q = rows[k + _ADAM_AHEAD]
+            prefetch_row_w(p, q)
+            prefetch_row_w(m, q)
+            prefetch_row_w(v, q)
         r = rows[k]
         for f in range(F):
             gi = np.float64(g[k, f])
@@ -303,14 +315,39 @@ _BLOCK = 64
 
 
 @njit(inline="always", cache=True)
-def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, stride, hashed, rows, row_off, R, W):
+def _prefetch8(pf, mode, r0, r1, r2, r3, r4, r5, r6, r7):
+    """Prefetch rows r0..r7 of pf for reading (mode 1) or writing (mode 2); mode 0: nothing."""
+    if mode == 1:
+        prefetch_row(pf, r0)
+        prefetch_row(pf, r1)
+        prefetch_row(pf, r2)
+        prefetch_row(pf, r3)
+        prefetch_row(pf, r4)
+        prefetch_row(pf, r5)
+        prefetch_row(pf, r6)
+        prefetch_row(pf, r7)
+    elif mode == 2:
+        prefetch_row_w(pf, r0)
+        prefetch_row_w(pf, r1)
+        prefetch_row_w(pf, r2)
+        prefetch_row_w(pf, r3)
+        prefetch_row_w(pf, r4)
+        prefetch_row_w(pf, r5)
+        prefetch_row_w(pf, r6)
+        prefetch_row_w(pf, r7)
+
+
+@njit(inline="always", cache=True)
+def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, stride, hashed, rows, row_off, R, W, pf, mode):
     """R[j, e−e0, c] = r_c and W[j, e−e0, :] = (wx, wy, wz, dx, dy, dz) of points n0 + j < n1,
-    entries e0 .. e1−1."""
+    entries e0 .. e1−1; the 8 corner rows of ``pf`` are prefetched as they are computed (``_prefetch8`` mode), so
+    that the gathers / scatters of pass 2 find them in cache."""
     for n in range(n0, n1):
         j = n - n0
         for e in range(e0, e1):
             r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz = _tri(
                 xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
+            _prefetch8(pf, mode, r0, r1, r2, r3, r4, r5, r6, r7)
             k = e - e0
             R[j, k, 0] = r0
             R[j, k, 1] = r1
@@ -340,7 +377,7 @@ def tri_forward(xn, table, res, scale, offset, stride, hashed, rows, row_off, ou
         W = np.empty((_BLOCK, E, 6), np.float64)
         n0 = b * _BLOCK
         n1 = min(N, n0 + _BLOCK)
-        _tri_block(xn, n0, n1, 0, E, res, scale, offset, stride, hashed, rows, row_off, R, W)
+        _tri_block(xn, n0, n1, 0, E, res, scale, offset, stride, hashed, rows, row_off, R, W, table, 1)
         for n in range(n0, n1):
             j = n - n0
             for e in range(E):
@@ -450,28 +487,46 @@ def _acc_sparse(slot, out_rows, out_vals, cb, cnt, r, wt, g, n, e, F):
 
 @njit(parallel=True, cache=True, fastmath=False)
 def tri_backward_table_sparse(xn, g, res, scale, offset, stride, hashed, rows, row_off,
-                              slot, cap_off, out_rows, out_vals, counts):
-    """Sparse table gradient of trilinear levels; same contract as ``interp_backward_table_sparse``."""
+                              slot, n_parts, part_log2, cap_off, out_rows, out_vals, counts):
+    """Sparse table gradient of trilinear levels, split into E·P work items (entry e, row part p): item
+    i = p·E + e owns the rows r of entry e with ((r − row_off[e]) >> part_log2) % P == p (blocks of rows dealt
+    round-robin, so every part spreads over the whole entry) and writes its touched rows and summed gradients
+    to out_rows / out_vals[cap_off[i] : cap_off[i] + counts[i]] (unique, first-touch order; out_vals written on
+    first touch, so never pre-zeroed). Items own disjoint rows, so they run in parallel without races even when
+    one fine level holds nearly all the work (dense grids, P > 1). ``slot`` (M,) int32 is all −1 on entry and exit.
+    Each item scans all N points of its entry (rows are cheap arithmetic) and prefetches the slots it owns."""
     N = xn.shape[0]
     E = res.shape[0]
     F = out_vals.shape[1]
-    for ie in prange(E):
-        e = _balanced(ie, E)
-        cb = cap_off[e]
+    P = n_parts
+    for it in prange(E * P):
+        p = it // E
+        e = _balanced(it % E, E)
+        item = p * E + e
+        base = row_off[e]
+        cb = cap_off[item]
         cnt = 0
-        for n in range(N):
-            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
-                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
-            w = _tri_weights(wx, wy, wz)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r0, w[0], g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r1, w[1], g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r2, w[2], g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r3, w[3], g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r4, w[4], g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r5, w[5], g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r6, w[6], g, n, e, F)
-            cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, r7, w[7], g, n, e, F)
-        counts[e] = cnt
+        R = np.empty((_BLOCK, 1, 8), np.int64)
+        W = np.empty((_BLOCK, 1, 6), np.float64)
+        for n0 in range(0, N, _BLOCK):
+            n1 = min(N, n0 + _BLOCK)
+            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, stride, hashed, rows, row_off, R, W, slot,
+                       2 if P == 1 else 0)
+            if P > 1:
+                for j in range(n1 - n0):
+                    for c in range(8):
+                        r = R[j, 0, c]
+                        if ((r - base) >> part_log2) % P == p:
+                            prefetch_row_w(slot, r)
+                        else:
+                            R[j, 0, c] = -1  # not this item's row
+            for n in range(n0, n1):
+                j = n - n0
+                w = _tri_weights(W[j, 0, 0], W[j, 0, 1], W[j, 0, 2])
+                for c in range(8):
+                    if R[j, 0, c] >= 0:
+                        cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, R[j, 0, c], w[c], g, n, e, F)
+        counts[item] = cnt
         for k in range(cnt):
             slot[out_rows[cb + k]] = -1
 
@@ -508,7 +563,7 @@ def tri_forward_jac(xn, table, res, scale, offset, stride, hashed, rows, row_off
         W = np.empty((_BLOCK, E, 6), np.float64)
         n0 = b * _BLOCK
         n1 = min(N, n0 + _BLOCK)
-        _tri_block(xn, n0, n1, 0, E, res, scale, offset, stride, hashed, rows, row_off, R, W)
+        _tri_block(xn, n0, n1, 0, E, res, scale, offset, stride, hashed, rows, row_off, R, W, table, 1)
         for n in range(n0, n1):
             j = n - n0
             for e in range(E):
@@ -603,7 +658,7 @@ def tri_backward_table_acc(xn, g, res, scale, offset, stride, hashed, rows, row_
         W = np.empty((_BLOCK, 1, 6), np.float64)
         for n0 in range(0, N, _BLOCK):
             n1 = min(N, n0 + _BLOCK)
-            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, stride, hashed, rows, row_off, R, W)
+            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, stride, hashed, rows, row_off, R, W, acc, 2)
             for n in range(n0, n1):
                 j = n - n0
                 wx = W[j, 0, 0]
