@@ -143,11 +143,11 @@ class MultilinearFn(torch.autograd.Function):
         ctx.jac = None
         if _is_trilinear(spec):
             out = torch.empty(xn.shape[0], spec.n_entries, tab.shape[1], dtype=tab.dtype)
-            if ctx.needs_input_grad[0]:  # one lookup for both: keep ∂out/∂xn for the input backward
-                ctx.jac = np.empty((xn.shape[0], spec.n_entries, tab.shape[1], 3), dtype=xn_np.dtype)
-                nk.tri_forward_jac(xn_np, tab.numpy(), *_tri_meta(spec), out.numpy(), ctx.jac)
-            else:
-                nk.tri_forward(xn_np, tab.numpy(), *_tri_meta(spec), out.numpy())
+            # one lookup for both: keep ∂out/∂xn for the input backward (an empty array: no Jacobian)
+            jac = np.empty((xn.shape[0] if ctx.needs_input_grad[0] else 0, spec.n_entries, tab.shape[1], 3),
+                           dtype=xn_np.dtype)
+            nk.tri_forward(xn_np, tab.numpy(), *_tri_meta(spec), out.numpy(), jac)
+            ctx.jac = jac if ctx.needs_input_grad[0] else None
         else:
             out = torch.zeros(xn.shape[0], spec.n_entries, tab.shape[1], dtype=tab.dtype)
             nk.interp_forward(xn_np, tab.numpy(), *_meta(spec), out.numpy())
@@ -173,10 +173,8 @@ class MultilinearFn(torch.autograd.Function):
         gx = gt = None
         if need_x:
             gx64 = np.zeros((xn.shape[0], 3), np.float64)
-            if ctx.jac is not None:
+            if ctx.jac is not None:  # trilinear: the forward kept the Jacobian (it knew the input grad was needed)
                 nk.tri_backward_x_jac(ctx.jac, g_np, gx64)
-            elif _is_trilinear(spec):
-                nk.tri_backward_x(xn_np, table.detach().numpy(), g_np, *_tri_meta(spec), gx64)
             else:
                 nk.interp_backward_x(xn_np, table.detach().numpy(), g_np, *_meta(spec), gx64)
             gx = torch.from_numpy(gx64).to(xn.dtype)

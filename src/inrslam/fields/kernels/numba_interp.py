@@ -365,82 +365,6 @@ def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, stride, hashed, rows, row
             W[j, k, 5] = dz
 
 
-@njit(parallel=True, cache=True, fastmath=False)
-def tri_forward(xn, table, res, scale, offset, stride, hashed, rows, row_off, out):
-    """Trilinear multi-level lookup: out[n,e,:] = Σ_c w_c T[r_c, :]  ((N,E,F), written, not accumulated)."""
-    N = xn.shape[0]
-    E = res.shape[0]
-    F = table.shape[1]
-    nb = (N + _BLOCK - 1) // _BLOCK
-    for b in prange(nb):
-        R = np.empty((_BLOCK, E, 8), np.int64)
-        W = np.empty((_BLOCK, E, 6), np.float64)
-        n0 = b * _BLOCK
-        n1 = min(N, n0 + _BLOCK)
-        _tri_block(xn, n0, n1, 0, E, res, scale, offset, stride, hashed, rows, row_off, R, W, table, 1)
-        for n in range(n0, n1):
-            j = n - n0
-            for e in range(E):
-                wx = W[j, e, 0]
-                wy = W[j, e, 1]
-                wz = W[j, e, 2]
-                w0, w1, w2, w3, w4, w5, w6, w7 = _tri_weights(wx, wy, wz)
-                r0 = R[j, e, 0]
-                r1 = R[j, e, 1]
-                r2 = R[j, e, 2]
-                r3 = R[j, e, 3]
-                r4 = R[j, e, 4]
-                r5 = R[j, e, 5]
-                r6 = R[j, e, 6]
-                r7 = R[j, e, 7]
-                for f in range(F):
-                    out[n, e, f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f]
-                                    + w3 * table[r3, f] + w4 * table[r4, f] + w5 * table[r5, f]
-                                    + w6 * table[r6, f] + w7 * table[r7, f])
-
-
-@njit(parallel=True, cache=True, fastmath=False)
-def tri_backward_x(xn, table, g, res, scale, offset, stride, hashed, rows, row_off, gx):
-    """gx[n,:] = Σ_e ∇_p̂ ⟨f_e(p̂), g[n,e]⟩ for trilinear levels (gx (N,3) float64, written)."""
-    N = xn.shape[0]
-    E = res.shape[0]
-    F = table.shape[1]
-    for n in prange(N):
-        ax = 0.0
-        ay = 0.0
-        az = 0.0
-        for e in range(E):
-            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz = _tri(
-                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
-            q0 = 0.0
-            q1 = 0.0
-            q2 = 0.0
-            q3 = 0.0
-            q4 = 0.0
-            q5 = 0.0
-            q6 = 0.0
-            q7 = 0.0
-            for f in range(F):
-                gf = np.float64(g[n, e, f])
-                q0 += table[r0, f] * gf
-                q1 += table[r1, f] * gf
-                q2 += table[r2, f] * gf
-                q3 += table[r3, f] * gf
-                q4 += table[r4, f] * gf
-                q5 += table[r5, f] * gf
-                q6 += table[r6, f] * gf
-                q7 += table[r7, f] * gf
-            ux = 1.0 - wx
-            uy = 1.0 - wy
-            uz = 1.0 - wz
-            ax += dx * (uy * uz * (q1 - q0) + wy * uz * (q3 - q2) + uy * wz * (q5 - q4) + wy * wz * (q7 - q6))
-            ay += dy * (ux * uz * (q2 - q0) + wx * uz * (q3 - q1) + ux * wz * (q6 - q4) + wx * wz * (q7 - q5))
-            az += dz * (ux * uy * (q4 - q0) + wx * uy * (q5 - q1) + ux * wy * (q6 - q2) + wx * wy * (q7 - q3))
-        gx[n, 0] = ax
-        gx[n, 1] = ay
-        gx[n, 2] = az
-
-
 @njit(inline="always", cache=True)
 def _acc_dense(grad, r, wt, g, n, e, F):
     for f in range(F):
@@ -531,15 +455,22 @@ def tri_backward_table_sparse(xn, g, res, scale, offset, stride, hashed, rows, r
             slot[out_rows[cb + k]] = -1
 
 
+@njit(inline="always", cache=True)
+def _exclusive_cumsum(counts):
+    """(E+1,) int64 offsets: dst[0] = 0, dst[e+1] = dst[e] + counts[e]."""
+    dst = np.zeros(counts.shape[0] + 1, np.int64)
+    for e in range(counts.shape[0]):
+        dst[e + 1] = dst[e] + counts[e]
+    return dst
+
+
 @njit(parallel=True, cache=True)
 def compact_entries(cap_off, counts, out_rows, out_vals, rows_dst, vals_dst):
     """Concatenate the per-entry blocks out_rows/out_vals[cap_off[e] : cap_off[e] + counts[e]] into rows_dst /
     vals_dst (of length Σ counts), entries in order (parallel over entries)."""
     E = counts.shape[0]
     F = out_vals.shape[1]
-    dst = np.zeros(E + 1, np.int64)
-    for e in range(E):
-        dst[e + 1] = dst[e] + counts[e]
+    dst = _exclusive_cumsum(counts)
     for ie in prange(E):
         e = _balanced(ie, E)
         src = cap_off[e]
@@ -551,12 +482,15 @@ def compact_entries(cap_off, counts, out_rows, out_vals, rows_dst, vals_dst):
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def tri_forward_jac(xn, table, res, scale, offset, stride, hashed, rows, row_off, out, jac):
-    """``tri_forward`` that also writes the input Jacobian jac[n,e,f,a] = ∂out[n,e,f]/∂p̂_a ((N,E,F,3), clamped
-    axes 0), so that the input backward is the contraction ``tri_backward_x_jac`` instead of a second lookup."""
+def tri_forward(xn, table, res, scale, offset, stride, hashed, rows, row_off, out, jac):
+    """Trilinear multi-level lookup: out[n,e,:] = Σ_c w_c T[r_c, :]  ((N,E,F), written, not accumulated).
+    Unless ``jac`` is empty (shape (0,E,F,3)), also writes the input Jacobian jac[n,e,f,a] = ∂out[n,e,f]/∂p̂_a
+    ((N,E,F,3), clamped axes 0), so that the input backward is the contraction ``tri_backward_x_jac`` instead of
+    a second lookup."""
     N = xn.shape[0]
     E = res.shape[0]
     F = table.shape[1]
+    want_jac = jac.shape[0] > 0
     nb = (N + _BLOCK - 1) // _BLOCK
     for b in prange(nb):
         R = np.empty((_BLOCK, E, 8), np.int64)
@@ -586,6 +520,11 @@ def tri_forward_jac(xn, table, res, scale, offset, stride, hashed, rows, row_off
                 r6 = R[j, e, 6]
                 r7 = R[j, e, 7]
                 for f in range(F):
+                    out[n, e, f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f]
+                                    + w3 * table[r3, f] + w4 * table[r4, f] + w5 * table[r5, f]
+                                    + w6 * table[r6, f] + w7 * table[r7, f])
+                    if not want_jac:
+                        continue
                     q0 = np.float64(table[r0, f])
                     q1 = np.float64(table[r1, f])
                     q2 = np.float64(table[r2, f])
@@ -594,9 +533,6 @@ def tri_forward_jac(xn, table, res, scale, offset, stride, hashed, rows, row_off
                     q5 = np.float64(table[r5, f])
                     q6 = np.float64(table[r6, f])
                     q7 = np.float64(table[r7, f])
-                    out[n, e, f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f]
-                                    + w3 * table[r3, f] + w4 * table[r4, f] + w5 * table[r5, f]
-                                    + w6 * table[r6, f] + w7 * table[r7, f])
                     jac[n, e, f, 0] = dx * (uy * uz * (q1 - q0) + wy * uz * (q3 - q2) + uy * wz * (q5 - q4)
                                             + wy * wz * (q7 - q6))
                     jac[n, e, f, 1] = dy * (ux * uz * (q2 - q0) + wx * uz * (q3 - q1) + ux * wz * (q6 - q4)
@@ -688,9 +624,7 @@ def drain_marked_rows(rows, row_off, mark_off, counts, acc, mark, rows_dst, vals
     Σ counts, ascending row order) and reset acc and mark to zero there (parallel over entries)."""
     E = counts.shape[0]
     F = acc.shape[1]
-    dst = np.zeros(E + 1, np.int64)
-    for e in range(E):
-        dst[e + 1] = dst[e] + counts[e]
+    dst = _exclusive_cumsum(counts)
     for ie in prange(E):
         e = _balanced(ie, E)
         k = dst[e]
