@@ -568,19 +568,11 @@ def tri_backward_x_jac(jac, g, gx):
 # ---------------------------------------------------------------------------------------------------------------
 
 
-@njit(inline="always", cache=True)
-def _acc_mark(acc, mark, moff, base, r, wt, g, n, e, F):
-    if wt != 0.0:  # zero-weight corner (e.g. a clamped point on the box face): not touched
-        k = r - base
-        mark[moff + (k >> 3)] |= np.uint8(1 << (k & 7))
-        for f in range(F):
-            acc[r, f] += wt * g[n, e, f]
-
-
 @njit(parallel=True, cache=True, fastmath=False)
-def tri_backward_table_acc(xn, g, res, scale, offset, stride, hashed, rows, row_off, mark_off, acc, mark, counts):
-    """acc[r_c] += w_c g[n,e] and set the touched bit of r_c for every non-zero-weight corner (parallel over levels,
-    points serially in order). acc (M,F) all zero on entry; mark: one bit per row, level e's rows at bytes
+def tri_backward_table_acc(xn, gT, res, scale, offset, stride, hashed, rows, row_off, mark_off, acc, mark, counts):
+    """acc[r_c] += w_c gT[e,n] and set the touched bit of r_c for every non-zero-weight corner (parallel over levels,
+    points serially in order). gT (E,N,F) is the output gradient level-major, so that a level reads it
+    contiguously. acc (M,F) all zero on entry; mark: one bit per row, level e's rows at bytes
     mark_off[e] + (r − row_off[e]) // 8 (bit (r − row_off[e]) % 8; levels never share a byte), all zero on entry
     (a bitmap is 1/64 of an (M,2) float32 table, so it stays in cache); counts[e] = touched rows of level e."""
     N = xn.shape[0]
@@ -597,18 +589,16 @@ def tri_backward_table_acc(xn, g, res, scale, offset, stride, hashed, rows, row_
             _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, stride, hashed, rows, row_off, R, W, acc, 2)
             for n in range(n0, n1):
                 j = n - n0
-                wx = W[j, 0, 0]
-                wy = W[j, 0, 1]
-                wz = W[j, 0, 2]
-                w = _tri_weights(wx, wy, wz)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 0], w[0], g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 1], w[1], g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 2], w[2], g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 3], w[3], g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 4], w[4], g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 5], w[5], g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 6], w[6], g, n, e, F)
-                _acc_mark(acc, mark, mo, base, R[j, 0, 7], w[7], g, n, e, F)
+                w = _tri_weights(W[j, 0, 0], W[j, 0, 1], W[j, 0, 2])
+                for c in range(8):
+                    if w[c] != 0.0:  # zero-weight corner (e.g. a clamped point on the box face): not touched
+                        k = R[j, 0, c] - base
+                        mark[mo + (k >> 3)] |= np.uint8(1 << (k & 7))
+                for f in range(F):
+                    gv = np.float64(gT[e, n, f])
+                    for c in range(8):
+                        if w[c] != 0.0:
+                            acc[R[j, 0, c], f] += w[c] * gv
         c = 0
         for b in range(mo, mo + (rows[e] + 7) // 8):
             m = mark[b]
