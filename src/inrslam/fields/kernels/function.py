@@ -104,7 +104,8 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dty
     counts = np.zeros(spec.n_entries, np.int64)
     if _is_trilinear(spec) and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
         acc, mark_off, mark = _accumulator(spec, F, g.dtype)
-        gT = np.ascontiguousarray(g.transpose(1, 0, 2))  # (E,N,F): each level reads its gradient contiguously
+        gT = np.empty((g.shape[1], g.shape[0], F), g.dtype)  # (E,N,F): each level reads its gradient contiguously
+        nk.level_major(g, gT)
         nk.tri_backward_table_acc(xn, gT, *_tri_meta(spec), mark_off, acc, mark, counts)
         nnz = int(counts.sum())
         rows = np.empty(nnz, np.int64)

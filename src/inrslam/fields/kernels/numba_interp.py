@@ -568,6 +568,22 @@ def tri_backward_x_jac(jac, g, gx):
 # ---------------------------------------------------------------------------------------------------------------
 
 
+@njit(parallel=True, cache=True)
+def level_major(g, out):
+    """out[e, n, f] = g[n, e, f]: (N,E,F) -> (E,N,F), in blocks of points (parallel)."""
+    N = g.shape[0]
+    E = g.shape[1]
+    F = g.shape[2]
+    nb = (N + 255) // 256
+    for b in prange(nb):
+        n0 = b * 256
+        n1 = min(N, n0 + 256)
+        for e in range(E):
+            for n in range(n0, n1):
+                for f in range(F):
+                    out[e, n, f] = g[n, e, f]
+
+
 @njit(parallel=True, cache=True, fastmath=False)
 def tri_backward_table_acc(xn, gT, res, scale, offset, stride, hashed, rows, row_off, mark_off, acc, mark, counts):
     """acc[r_c] += w_c gT[e,n] and set the touched bit of r_c for every non-zero-weight corner (parallel over levels,
