@@ -93,6 +93,11 @@ def test_row_partitioned_sparse_backward_matches_reference(monkeypatch, name, pa
     _, _, gt_ref = _grads("torch", spec, table, x, cot)
     torch.testing.assert_close(t.grad.to_dense(), gt_ref, rtol=1e-5, atol=1e-5)
     assert np.all(spec._slot == -1)  # the slot scratch is restored for the next call
+    # each row is summed over the points in order whatever the split: bitwise the same gradient as one part
+    monkeypatch.setattr(function, "_row_parts", lambda spec: 1)
+    t1 = table.clone().requires_grad_()
+    multilinear(x, t1, spec, "numba", sparse=True).backward(cot)
+    assert torch.equal(t1.grad.to_dense(), t.grad.to_dense())
 
 
 @pytest.mark.parametrize("backend", ["torch", "numba"])
