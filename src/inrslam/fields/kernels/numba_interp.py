@@ -568,6 +568,12 @@ def tri_backward_x_jac(jac, g, gx):
 # ---------------------------------------------------------------------------------------------------------------
 
 
+#: Set bits of every byte value: _BIT_CNT[m] of them, at positions _BIT_POS[m, :_BIT_CNT[m]] (ascending).
+_BIT_CNT = np.array([bin(m).count("1") for m in range(256)], np.int64)
+_BIT_POS = np.array([[b for b in range(8) if (m >> b) & 1] + [0] * (8 - bin(m).count("1")) for m in range(256)],
+                    np.int64)
+
+
 @njit(parallel=True, cache=True)
 def level_major(g, out):
     """out[e, n, f] = g[n, e, f]: (N,E,F) -> (E,N,F), in blocks of points (parallel)."""
@@ -617,10 +623,7 @@ def tri_backward_table_acc(xn, gT, res, scale, offset, stride, hashed, rows, row
                             acc[R[j, 0, c], f] += w[c] * gv
         c = 0
         for b in range(mo, mo + (rows[e] + 7) // 8):
-            m = mark[b]
-            while m:
-                c += 1
-                m &= m - np.uint8(1)
+            c += _BIT_CNT[mark[b]]
         counts[e] = c
 
 
@@ -642,11 +645,10 @@ def drain_marked_rows(rows, row_off, mark_off, counts, acc, mark, rows_dst, vals
                 continue
             mark[b] = 0
             r0 = base + (b - mo) * 8
-            for bit in range(8):
-                if (m >> bit) & 1:
-                    r = r0 + bit
-                    rows_dst[k] = r
-                    for f in range(F):
-                        vals_dst[k, f] = acc[r, f]
-                        acc[r, f] = 0.0
-                    k += 1
+            for i in range(_BIT_CNT[m]):  # the set bits of m, no branch per bit
+                r = r0 + _BIT_POS[m, i]
+                rows_dst[k] = r
+                for f in range(F):
+                    vals_dst[k, f] = acc[r, f]
+                    acc[r, f] = 0.0
+                k += 1
