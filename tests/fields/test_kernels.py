@@ -73,6 +73,24 @@ def test_sparse_grad_has_unique_touched_rows():
     assert dense.shape == (x.shape[0], spec.n_entries, table.shape[1])
 
 
+@pytest.mark.parametrize("name", ["dense", "hash", "dense_faithful", "hash_faithful"])
+def test_merged_clamp_equals_two_clamps(name):
+    """The trilinear kernels clamp u once to [lo, hi] instead of p̂ to [0,1] and then u to [0, R−1]: the same
+    corner, weight and du/dp̂ for points inside, on and outside the box (float32 inputs, as the kernels see them)."""
+    from inrslam.fields.kernels.numba_interp import _axis, _axis_lean
+
+    spec = InterpSpec.build(specs()[name])
+    rng = np.random.default_rng(0)
+    edges = [-1.0, -1e-7, 0.0, 1e-7, 0.5, 1.0 - 1e-7, 1.0, 1.0 + 1.2e-7, 2.0]
+    ps = np.concatenate([edges, rng.uniform(-0.2, 1.2, 300)]).astype(np.float32).astype(np.float64)
+    for e in range(spec.n_entries):
+        for a in range(3):
+            args = (spec.scale[e, a], spec.offset[e, a], spec.res[e, a])
+            vertices = (np.arange(spec.res[e, a]) - spec.offset[e, a]) / spec.scale[e, a]  # p̂ of grid vertices
+            for p in np.concatenate([ps, vertices[(vertices >= 0) & (vertices <= 1)]]):
+                assert _axis(p, *args) == _axis_lean(p, args[0], args[1], spec.lo[e, a], spec.hi[e, a], args[2])
+
+
 @pytest.mark.parametrize("parts", [1, 2, 3])
 @pytest.mark.parametrize("name", ["dense", "hash", "dense_faithful"])
 def test_row_partitioned_sparse_backward_matches_reference(monkeypatch, name, parts):

@@ -88,7 +88,7 @@ def _is_trilinear(spec: InterpSpec) -> bool:
 
 
 def _tri_meta(spec: InterpSpec):
-    return (spec.res, spec.scale, spec.offset, spec.stride, spec.hashed, spec.rows, spec.row_off)
+    return (spec.res, spec.scale, spec.offset, spec.lo, spec.hi, spec.stride, spec.hashed, spec.rows, spec.row_off)
 
 
 def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dtype, sparse: bool) -> torch.Tensor:

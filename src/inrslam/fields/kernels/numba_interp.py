@@ -265,10 +265,28 @@ def lazy_adam_rows(p, m, v, rows, g, step_size, beta1, beta2, eps, bc2_sqrt):
 
 
 @njit(inline="always", cache=True)
-def _tri(xn, n, e, res, scale, offset, stride, hashed, rows, row_off):
-    ix, wx, dx = _axis(np.float64(xn[n, 0]), scale[e, 0], offset[e, 0], res[e, 0])
-    iy, wy, dy = _axis(np.float64(xn[n, 1]), scale[e, 1], offset[e, 1], res[e, 1])
-    iz, wz, dz = _axis(np.float64(xn[n, 2]), scale[e, 2], offset[e, 2], res[e, 2])
+def _axis_lean(p, scale, offset, lo, hi, res):
+    """``_axis`` with its two clamps merged into one of u to [lo, hi] (``InterpSpec.lo/hi``); same results."""
+    u = p * scale + offset
+    du = scale
+    if u < lo:
+        u = lo
+        du = 0.0
+    elif u > hi:
+        u = hi
+        du = 0.0
+    i = np.int64(u)  # u ≥ 0: truncation is the floor
+    if i > res - 2:
+        i = res - 2
+    return i, u - i, du
+
+
+@njit(inline="always", cache=True)
+def _tri(px, py, pz, e, res, scale, offset, lo, hi, stride, hashed, rows, row_off):
+    """Corner rows r0..r7, weights and du/dp̂ of point p̂ = (px, py, pz) (float64) in level e."""
+    ix, wx, dx = _axis_lean(px, scale[e, 0], offset[e, 0], lo[e, 0], hi[e, 0], res[e, 0])
+    iy, wy, dy = _axis_lean(py, scale[e, 1], offset[e, 1], lo[e, 1], hi[e, 1], res[e, 1])
+    iz, wz, dz = _axis_lean(pz, scale[e, 2], offset[e, 2], lo[e, 2], hi[e, 2], res[e, 2])
     base = row_off[e]
     if hashed[e]:
         mask = rows[e] - 1
@@ -338,15 +356,18 @@ def _prefetch8(pf, mode, r0, r1, r2, r3, r4, r5, r6, r7):
 
 
 @njit(inline="always", cache=True)
-def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, stride, hashed, rows, row_off, R, W, pf, mode):
+def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, R, W, pf, mode):
     """R[j, e−e0, c] = r_c and W[j, e−e0, :] = (wx, wy, wz, dx, dy, dz) of points n0 + j < n1,
     entries e0 .. e1−1; the 8 corner rows of ``pf`` are prefetched as they are computed (``_prefetch8`` mode), so
     that the gathers / scatters of pass 2 find them in cache."""
     for n in range(n0, n1):
         j = n - n0
+        px = np.float64(xn[n, 0])
+        py = np.float64(xn[n, 1])
+        pz = np.float64(xn[n, 2])
         for e in range(e0, e1):
             r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz = _tri(
-                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
+                px, py, pz, e, res, scale, offset, lo, hi, stride, hashed, rows, row_off)
             _prefetch8(pf, mode, r0, r1, r2, r3, r4, r5, r6, r7)
             k = e - e0
             R[j, k, 0] = r0
@@ -372,7 +393,7 @@ def _acc_dense(grad, r, wt, g, n, e, F):
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def tri_backward_table_dense(xn, g, res, scale, offset, stride, hashed, rows, row_off, grad):
+def tri_backward_table_dense(xn, g, res, scale, offset, lo, hi, stride, hashed, rows, row_off, grad):
     """grad[r_c] += w_c g[n,e] into a pre-zeroed dense (M,F) array (parallel over levels)."""
     N = xn.shape[0]
     E = res.shape[0]
@@ -381,7 +402,8 @@ def tri_backward_table_dense(xn, g, res, scale, offset, stride, hashed, rows, ro
         e = _balanced(ie, E)
         for n in range(N):
             r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
-                xn, n, e, res, scale, offset, stride, hashed, rows, row_off)
+                np.float64(xn[n, 0]), np.float64(xn[n, 1]), np.float64(xn[n, 2]), e, res, scale, offset, lo, hi,
+                stride, hashed, rows, row_off)
             w = _tri_weights(wx, wy, wz)
             _acc_dense(grad, r0, w[0], g, n, e, F)
             _acc_dense(grad, r1, w[1], g, n, e, F)
@@ -410,7 +432,7 @@ def _acc_sparse(slot, out_rows, out_vals, cb, cnt, r, wt, g, n, e, F):
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def tri_backward_table_sparse(xn, g, res, scale, offset, stride, hashed, rows, row_off,
+def tri_backward_table_sparse(xn, g, res, scale, offset, lo, hi, stride, hashed, rows, row_off,
                               slot, n_parts, part_log2, cap_off, out_rows, out_vals, counts):
     """Sparse table gradient of trilinear levels, split into E·P work items (entry e, row part p): item
     i = p·E + e owns the rows r of entry e with ((r − row_off[e]) >> part_log2) % P == p (blocks of rows dealt
@@ -434,7 +456,7 @@ def tri_backward_table_sparse(xn, g, res, scale, offset, stride, hashed, rows, r
         W = np.empty((_BLOCK, 1, 6), np.float64)
         for n0 in range(0, N, _BLOCK):
             n1 = min(N, n0 + _BLOCK)
-            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, stride, hashed, rows, row_off, R, W, slot,
+            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, R, W, slot,
                        2 if P == 1 else 0)
             if P > 1:
                 for j in range(n1 - n0):
@@ -482,7 +504,7 @@ def compact_entries(cap_off, counts, out_rows, out_vals, rows_dst, vals_dst):
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def tri_forward(xn, table, res, scale, offset, stride, hashed, rows, row_off, out, jac):
+def tri_forward(xn, table, res, scale, offset, lo, hi, stride, hashed, rows, row_off, out, jac):
     """Trilinear multi-level lookup: out[n,e,:] = Σ_c w_c T[r_c, :]  ((N,E,F), written, not accumulated).
     Unless ``jac`` is empty (shape (0,E,F,3)), also writes the input Jacobian jac[n,e,f,a] = ∂out[n,e,f]/∂p̂_a
     ((N,E,F,3), clamped axes 0), so that the input backward is the contraction ``tri_backward_x_jac`` instead of
@@ -497,7 +519,7 @@ def tri_forward(xn, table, res, scale, offset, stride, hashed, rows, row_off, ou
         W = np.empty((_BLOCK, E, 6), np.float64)
         n0 = b * _BLOCK
         n1 = min(N, n0 + _BLOCK)
-        _tri_block(xn, n0, n1, 0, E, res, scale, offset, stride, hashed, rows, row_off, R, W, table, 1)
+        _tri_block(xn, n0, n1, 0, E, res, scale, offset, lo, hi, stride, hashed, rows, row_off, R, W, table, 1)
         for n in range(n0, n1):
             j = n - n0
             for e in range(E):
@@ -591,7 +613,8 @@ def level_major(g, out):
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def tri_backward_table_acc(xn, gT, res, scale, offset, stride, hashed, rows, row_off, mark_off, acc, mark, counts):
+def tri_backward_table_acc(xn, gT, res, scale, offset, lo, hi, stride, hashed, rows, row_off, mark_off, acc, mark,
+                           counts):
     """acc[r_c] += w_c gT[e,n] and set the touched bit of r_c for every non-zero-weight corner (parallel over levels,
     points serially in order). gT (E,N,F) is the output gradient level-major, so that a level reads it
     contiguously. acc (M,F) all zero on entry; mark: one bit per row, level e's rows at bytes
@@ -608,7 +631,8 @@ def tri_backward_table_acc(xn, gT, res, scale, offset, stride, hashed, rows, row
         W = np.empty((_BLOCK, 1, 6), np.float64)
         for n0 in range(0, N, _BLOCK):
             n1 = min(N, n0 + _BLOCK)
-            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, stride, hashed, rows, row_off, R, W, acc, 2)
+            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, R, W, acc,
+                       2)
             for n in range(n0, n1):
                 j = n - n0
                 w = _tri_weights(W[j, 0, 0], W[j, 0, 1], W[j, 0, 2])

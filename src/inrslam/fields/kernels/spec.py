@@ -36,6 +36,8 @@ class InterpSpec:
     hashed: np.ndarray  # (E,) bool, spatial hash instead of direct indexing
     rows: np.ndarray  # (E,) int64, table rows owned by the entry
     row_off: np.ndarray  # (E,) int64, first row of the entry
+    lo: np.ndarray  # (E,3) float64, u's clamp range [lo, hi] = [0, R−1] ∩ [offset, scale + offset] (p̂ ∈ [0,1])
+    hi: np.ndarray  # (E,3) float64
     _torch_cache: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -68,6 +70,8 @@ class InterpSpec:
             r = [int(v) for v in ent["res"]]
             if min(r) < 2:
                 raise ValueError(f"entry {e}: resolution {r} needs >= 2 vertices per axis")
+            if min(float(v) for v in ent["scale"]) <= 0.0:
+                raise ValueError(f"entry {e}: scale {list(ent['scale'])} must be positive")
             ndim[e] = d
             axes[e, :d] = ent["axes"]
             res[e, :d] = r
@@ -86,7 +90,11 @@ class InterpSpec:
             rows[e] = n_rows
             row_off[e] = off
             off += n_rows
-        return InterpSpec(ndim, axes, res, scale, offset, stride, hashed, rows, row_off)
+        # both clamps of u in one: p̂ ↦ p̂·scale + offset is increasing (scale > 0), so clamping p̂ to [0,1] first is
+        # the same as clamping u to [offset, scale + offset] (0·scale and 1·scale are exact)
+        lo = np.maximum(offset, 0.0)
+        hi = np.minimum(scale + offset, res - 1.0)
+        return InterpSpec(ndim, axes, res, scale, offset, stride, hashed, rows, row_off, lo, hi)
 
     def torch_arrays(self, device: torch.device) -> dict[str, torch.Tensor]:
         """The metadata as tensors on ``device`` (cached), for the reference path."""
