@@ -2,11 +2,12 @@
 
 Layout: points ``xn (N,3)`` normalised to [0,1] (float32 or float64), table ``T (M,F)``, output ``(N,E,F)``.
 Race freedom: the forward and the input backward parallelise over points (each point owns its output row);
-the table backward parallelises over entries, whose row ranges are disjoint, and loops over points serially
-inside an entry, so no two threads ever write the same table row (entries are dealt to threads in the order
-0, E−1, 1, E−2, … so that each thread gets both cheap coarse and cache-missing fine levels).
-Trilinear kernels work in blocks of points: rows and weights first, then the gathers / scatters, which keeps many
-cache misses in flight. When the input gradient is needed, the forward also stores ∂out/∂p̂ so that the input
+the table backward parallelises over entries, whose row ranges are disjoint (or, for the few huge levels of a
+dense grid, over interleaved row parts of an entry), and loops over points serially inside a work item, so no two
+threads ever write the same table row and each row's sum is in point order (entries are dealt to threads in the
+order 0, E−1, 1, E−2, … so that each thread gets both cheap coarse and cache-missing fine levels).
+Trilinear kernels work in blocks of points: rows and weights first, prefetching each corner's cache line
+(``prefetch.py``), then the gathers / scatters, which find them in cache. When the input gradient is needed, the forward also stores ∂out/∂p̂ so that the input
 backward is a contraction instead of a second lookup.
 """
 
