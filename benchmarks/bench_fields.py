@@ -1,6 +1,6 @@
 """Benchmark of the fused numba kernels vs the PyTorch reference (same run, same inputs). Prints a table.
 
-    python benchmarks/bench_fields.py [--reps 3]
+    python benchmarks/bench_fields.py [--reps 3] [--threads 1]
 
 Points are mapping-batch-like: rays (60 samples each) through a 6 x 5 x 3 m box. Times are medians over reps
 after two warm-up calls per case (numba JIT is cached on disk). Peak memory = rise of the process's peak RSS
@@ -97,7 +97,15 @@ def encoder_fwd_bwd(enc, x: torch.Tensor, kernel: str, wrt: str):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch and numba threads for both paths (default: all cores); 1 separates kernel cost from "
+                         "thread-pool effects")
     args = ap.parse_args()
+    if args.threads:
+        import numba
+
+        torch.set_num_threads(args.threads)
+        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     torch.manual_seed(0)
     rows = []
 
