@@ -91,6 +91,17 @@ def _tri_meta(spec: InterpSpec):
     return (spec.res, spec.scale, spec.offset, spec.lo, spec.hi, spec.stride, spec.hashed, spec.rows, spec.row_off)
 
 
+def _sparse_grad(spec: InterpSpec, shape, dtype, counts: np.ndarray, fill) -> torch.Tensor:
+    """Sparse COO (M,F) table gradient of Σ counts unique rows, written into (rows, vals) by ``fill(rows, vals)``."""
+    nnz = int(counts.sum())
+    rows = np.empty(nnz, np.int64)
+    vals = np.empty((nnz, shape[1]), dtype=dtype)
+    fill(rows, vals)
+    values = torch.from_numpy(vals)
+    spec._unique_values_ptr = values.data_ptr()  # lets the optimizer skip de-duplicating this exact gradient
+    return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], values, shape, check_invariants=False)
+
+
 def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dtype, sparse: bool) -> torch.Tensor:
     """∂L/∂T from the fused kernel: sparse COO with unique rows (``sparse``) or dense (M,F)."""
     M, F = shape
@@ -101,19 +112,15 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dty
         else:
             nk.interp_backward_table_dense(xn, g, *_meta(spec), grad.numpy())
         return grad
-    counts = np.zeros(spec.n_entries, np.int64)
     if _is_trilinear(spec) and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
         acc, mark_off, mark = _accumulator(spec, F, g.dtype)
         gT = np.empty((g.shape[1], g.shape[0], F), g.dtype)  # (E,N,F): each level reads its gradient contiguously
         nk.level_major(g, gT)
+        counts = np.zeros(spec.n_entries, np.int64)
         nk.tri_backward_table_acc(xn, gT, *_tri_meta(spec), mark_off, acc, mark, counts)
-        nnz = int(counts.sum())
-        rows = np.empty(nnz, np.int64)
-        vals = np.empty((nnz, F), dtype=g.dtype)
-        nk.drain_marked_rows(spec.rows, spec.row_off, mark_off, counts, acc, mark, rows, vals)
-        values = torch.from_numpy(vals)
-        spec._unique_values_ptr = values.data_ptr()
-        return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], values, (M, F), check_invariants=False)
+        return _sparse_grad(spec, shape, g.dtype, counts,
+                            lambda rows, vals: nk.drain_marked_rows(spec.rows, spec.row_off, mark_off, counts, acc,
+                                                                    mark, rows, vals))
     if _is_trilinear(spec):
         parts = _row_parts(spec)
         cap_off, out_rows, out_vals = _sparse_workspace(spec, xn.shape[0], F, g.dtype, parts)
@@ -122,14 +129,10 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dty
                                      out_vals, counts)
     else:
         cap_off, out_rows, out_vals = _sparse_workspace(spec, xn.shape[0], F, g.dtype)
+        counts = np.zeros(spec.n_entries, np.int64)
         nk.interp_backward_table_sparse(xn, g, *_meta(spec), workspace(spec), cap_off, out_rows, out_vals, counts)
-    nnz = int(counts.sum())
-    rows = np.empty(nnz, np.int64)
-    vals = np.empty((nnz, F), dtype=g.dtype)
-    nk.compact_entries(cap_off, counts, out_rows, out_vals, rows, vals)
-    values = torch.from_numpy(vals)
-    spec._unique_values_ptr = values.data_ptr()  # lets the optimizer skip de-duplicating this exact gradient
-    return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], values, (M, F), check_invariants=False)
+    return _sparse_grad(spec, shape, g.dtype, counts,
+                        lambda rows, vals: nk.compact_entries(cap_off, counts, out_rows, out_vals, rows, vals))
 
 
 class MultilinearFn(torch.autograd.Function):
