@@ -9,6 +9,7 @@ from torch import nn
 
 from inrslam.fields import FieldConfig, build_field, make_optimizer
 from inrslam.fields.kernels import InterpSpec, multilinear
+from inrslam.fields.kernels.function import unique_rows_of
 from inrslam.fields.optim import LazyAdam
 
 BOX = np.array([[-0.6, 0.6], [-0.5, 0.5], [0.0, 0.8]])
@@ -131,3 +132,22 @@ def test_state_dict_roundtrip_and_zero_lr():
     before = [p.detach().clone() for p in field.parameters()]
     step(field, opt)
     assert all(torch.equal(a, b) for a, b in zip(before, field.parameters()))
+
+
+def test_gradient_accumulated_over_two_backward_passes_is_deduplicated():
+    """Two fused backward passes into one .grad (rows shared by both) update the table as one pass over both point
+    sets: only a gradient straight from one fused backward may skip the optimizer's de-duplication."""
+    torch.manual_seed(0)
+    model, twin = Toy(), Toy()
+    twin.load_state_dict(model.state_dict())
+    opt, twin_opt = make_optimizer(model, lr=0.05), make_optimizer(twin, lr=0.05)
+    x1, x2 = torch.rand(40, 3) * 0.5, torch.rand(40, 3) * 0.5  # same region: many shared rows
+    model(x1, "numba").square().sum().backward()
+    model(x2, "numba").square().sum().backward()
+    twin(torch.cat([x1, x2]), "numba").square().sum().backward()  # one pass over both: unique rows
+    g = model.table.grad
+    assert not unique_rows_of(model.spec, g._values())  # a sum of two gradients: not the last fused one
+    torch.testing.assert_close(g.to_dense(), twin.table.grad.to_dense(), rtol=1e-5, atol=1e-6)
+    opt.step()
+    twin_opt.step()
+    torch.testing.assert_close(model.table.detach(), twin.table.detach(), rtol=1e-5, atol=1e-6)

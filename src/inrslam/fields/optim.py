@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from inrslam.fields.kernels import numba_interp as nk
-from inrslam.fields.kernels.function import workspace
+from inrslam.fields.kernels.function import unique_rows_of, workspace
 
 
 def is_lazy(p: torch.Tensor) -> bool:
@@ -61,7 +61,7 @@ class LazyAdam(torch.optim.Optimizer):
                 return g.indices()[0], g.values()
             rows, vals = g._indices()[0].contiguous(), g._values().contiguous()
             spec = self._specs.get(id(p))
-            if spec is not None and getattr(spec, "_unique_values_ptr", None) == vals.data_ptr():
+            if spec is not None and unique_rows_of(spec, vals):
                 return rows, vals  # straight from one fused backward: rows already unique
             vals2 = vals.reshape(vals.shape[0], -1)
             out_rows = np.empty(rows.shape[0], np.int64)

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import weakref
+
 import numba
 import numpy as np
 import torch
 
 from inrslam.fields.kernels import numba_interp as nk
+from inrslam.fields.kernels.pool import BufferPool
 from inrslam.fields.kernels.spec import InterpSpec
 from inrslam.fields.kernels.torch_interp import interp_torch
 
@@ -91,15 +94,45 @@ def _tri_meta(spec: InterpSpec):
     return (spec.res, spec.scale, spec.offset, spec.lo, spec.hi, spec.stride, spec.hashed, spec.rows, spec.row_off)
 
 
+def _grad_pool(spec: InterpSpec) -> BufferPool:
+    """The pool of the sparse gradients' (rows, values) arrays of ``spec``, created on first use."""
+    pool = getattr(spec, "_grad_pool", None)
+    if pool is None:
+        pool = spec._grad_pool = BufferPool()
+    return pool
+
+
 def _sparse_grad(spec: InterpSpec, shape, dtype, counts: np.ndarray, fill) -> torch.Tensor:
-    """Sparse COO (M,F) table gradient of Σ counts unique rows, written into (rows, vals) by ``fill(rows, vals)``."""
+    """Sparse COO (M,F) table gradient of Σ counts unique rows, written into (rows, vals) by ``fill(rows, vals)``.
+    Both arrays come from the spec's ``BufferPool``: a steady stream of backward passes reuses the same memory."""
     nnz = int(counts.sum())
-    rows = np.empty(nnz, np.int64)
-    vals = np.empty((nnz, shape[1]), dtype=dtype)
+    pool = _grad_pool(spec)
+    rows = pool.take((nnz,), np.int64)
+    vals = pool.take((nnz, shape[1]), dtype)
     fill(rows, vals)
-    values = torch.from_numpy(vals)
-    spec._unique_values_ptr = values.data_ptr()  # lets the optimizer skip de-duplicating this exact gradient
-    return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], values, shape, check_invariants=False)
+    # lets the optimizer skip de-duplicating this exact gradient (the weak reference dies with its memory)
+    spec._unique_values = weakref.ref(vals)
+    return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], torch.from_numpy(vals), shape,
+                                   check_invariants=False)
+
+
+def unique_rows_of(spec: InterpSpec, values: torch.Tensor) -> bool:
+    """True if ``values`` (a sparse gradient's values) are those of the last fused sparse gradient of ``spec``,
+    whose rows are unique."""
+    ref = getattr(spec, "_unique_values", None)
+    vals = ref() if ref is not None else None
+    return (vals is not None and values.device.type == "cpu" and vals.ctypes.data == values.data_ptr()
+            and vals.shape == tuple(values.shape))
+
+
+def _level_major(g: np.ndarray, spec: InterpSpec) -> np.ndarray:
+    """(E,N,F) copy of g (N,E,F) in a scratch array kept on the spec (grown, never shrunk)."""
+    ws = getattr(spec, "_gT", None)
+    if ws is None or ws.dtype != g.dtype or ws.size < g.size:
+        ws = spec._gT = np.empty(g.size, g.dtype)
+    gT = ws[: g.size].reshape(g.shape[1], g.shape[0], g.shape[2])
+    nk.level_major(g, gT)
+    return gT
 
 
 def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dtype, sparse: bool) -> torch.Tensor:
@@ -114,8 +147,7 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, spec: InterpSpec, shape, dty
         return grad
     if _is_trilinear(spec) and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
         acc, mark_off, mark = _accumulator(spec, F, g.dtype)
-        gT = np.empty((g.shape[1], g.shape[0], F), g.dtype)  # (E,N,F): each level reads its gradient contiguously
-        nk.level_major(g, gT)
+        gT = _level_major(g, spec)  # (E,N,F): each level reads its gradient contiguously
         counts = np.zeros(spec.n_entries, np.int64)
         nk.tri_backward_table_acc(xn, gT, *_tri_meta(spec), mark_off, acc, mark, counts)
         return _sparse_grad(spec, shape, g.dtype, counts,

@@ -40,6 +40,11 @@ class InterpSpec:
     hi: np.ndarray  # (E,3) float64
     _torch_cache: dict = field(default_factory=dict, repr=False)
 
+    def __getstate__(self) -> dict:
+        """Copies and pickles carry the metadata only: the kernels' scratch arrays, buffer pools and caches that
+        they keep as ``_``-attributes on the spec are rebuilt on first use."""
+        return {k: v for k, v in self.__dict__.items() if not k.startswith("_")} | {"_torch_cache": {}}
+
     @property
     def n_entries(self) -> int:
         return int(self.ndim.shape[0])
