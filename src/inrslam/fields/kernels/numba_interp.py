@@ -22,6 +22,7 @@ from inrslam.fields.kernels.prefetch import prefetch_row, prefetch_row_w
 
 _P1 = np.int64(2654435761)
 _P2 = np.int64(805459861)
+_u = np.uint64  # an unsigned index: no negative-index wrap-around code (see ``_tri_block``)
 
 
 @njit(inline="always", cache=True)
@@ -356,35 +357,78 @@ def _prefetch8(pf, mode, r0, r1, r2, r3, r4, r5, r6, r7):
         prefetch_row_w(pf, r7)
 
 
+#: Entries with fewer rows than this are not prefetched (their rows stay in L2 cache anyway).
+_PREFETCH_MIN_ROWS = 1 << 14
+
+
 @njit(inline="always", cache=True)
-def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, R, W, pf, mode):
-    """R[j, e−e0, c] = r_c and W[j, e−e0, :] = (wx, wy, wz, dx, dy, dz) of points n0 + j < n1,
-    entries e0 .. e1−1; the 8 corner rows of ``pf`` are prefetched as they are computed (``_prefetch8`` mode), so
-    that the gathers / scatters of pass 2 find them in cache."""
-    for n in range(n0, n1):
-        j = n - n0
-        px = np.float64(xn[n, 0])
-        py = np.float64(xn[n, 1])
-        pz = np.float64(xn[n, 2])
-        for e in range(e0, e1):
-            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, dx, dy, dz = _tri(
-                px, py, pz, e, res, scale, offset, lo, hi, stride, hashed, rows, row_off)
-            _prefetch8(pf, mode, r0, r1, r2, r3, r4, r5, r6, r7)
-            k = e - e0
-            R[j, k, 0] = r0
-            R[j, k, 1] = r1
-            R[j, k, 2] = r2
-            R[j, k, 3] = r3
-            R[j, k, 4] = r4
-            R[j, k, 5] = r5
-            R[j, k, 6] = r6
-            R[j, k, 7] = r7
-            W[j, k, 0] = wx
-            W[j, k, 1] = wy
-            W[j, k, 2] = wz
-            W[j, k, 3] = dx
-            W[j, k, 4] = dy
-            W[j, k, 5] = dz
+def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, X, I, R, W, pf, mode):
+    """Pass 1 of points n0 + j < n1 and entries e0 .. e1−1, structure-of-arrays so that it vectorises:
+    R[e−e0, c, j] = r_c and W[e−e0, :, j] = (wx, wy, wz, dx, dy, dz). X (3,B) float64 and I (3,B) int64 are
+    scratch. The corner rows of ``pf`` are then prefetched (``_prefetch8`` mode; entries of fewer than
+    ``_PREFETCH_MIN_ROWS`` rows skipped), so that the gathers / scatters of pass 2 find them in cache.
+    Indices are cast to unsigned so that numba emits no negative-index wrap-around (which blocks vectorisation)."""
+    m = n1 - n0
+    for j in range(m):
+        X[0, _u(j)] = np.float64(xn[_u(n0 + j), 0])
+        X[1, _u(j)] = np.float64(xn[_u(n0 + j), 1])
+        X[2, _u(j)] = np.float64(xn[_u(n0 + j), 2])
+    for e in range(e0, e1):
+        k = _u(e - e0)
+        for a in range(3):  # _axis_lean, vectorised over the points
+            s = scale[e, a]
+            o = offset[e, a]
+            lo_a = lo[e, a]
+            hi_a = hi[e, a]
+            top = res[e, a] - 2
+            for j in range(m):
+                u = X[_u(a), _u(j)] * s + o
+                du = s
+                if u < lo_a:
+                    u = lo_a
+                    du = 0.0
+                elif u > hi_a:
+                    u = hi_a
+                    du = 0.0
+                i = np.int64(u)  # u ≥ 0: truncation is the floor
+                if i > top:
+                    i = top
+                I[_u(a), _u(j)] = i
+                W[k, _u(a), _u(j)] = u - i
+                W[k, _u(a + 3), _u(j)] = du
+        base = row_off[e]
+        if hashed[e]:
+            mask = rows[e] - 1
+            for c in range(8):
+                bx = c & 1
+                by = (c >> 1) & 1
+                bz = c >> 2
+                for j in range(m):
+                    R[k, _u(c), _u(j)] = base + (((I[0, _u(j)] + bx) ^ ((I[1, _u(j)] + by) * _P1)
+                                                  ^ ((I[2, _u(j)] + bz) * _P2)) & mask)
+        else:
+            sy = stride[e, 1]
+            sz = stride[e, 2]
+            for c in range(8):
+                off = base + (c & 1) + ((c >> 1) & 1) * sy + (c >> 2) * sz
+                for j in range(m):
+                    R[k, _u(c), _u(j)] = off + I[0, _u(j)] + I[1, _u(j)] * sy + I[2, _u(j)] * sz
+    if mode == 0:
+        return
+    for e in range(e0, e1):
+        if rows[e] < _PREFETCH_MIN_ROWS:
+            continue
+        k = _u(e - e0)
+        for j in range(m):
+            _prefetch8(pf, mode, R[k, 0, _u(j)], R[k, 1, _u(j)], R[k, 2, _u(j)], R[k, 3, _u(j)], R[k, 4, _u(j)],
+                       R[k, 5, _u(j)], R[k, 6, _u(j)], R[k, 7, _u(j)])
+
+
+@njit(inline="always", cache=True)
+def _block_scratch(K):
+    """(X, I, R, W) scratch of ``_tri_block`` for K entries."""
+    return (np.empty((3, _BLOCK), np.float64), np.empty((3, _BLOCK), np.int64), np.empty((K, 8, _BLOCK), np.int64),
+            np.empty((K, 6, _BLOCK), np.float64))
 
 
 @njit(inline="always", cache=True)
@@ -453,26 +497,25 @@ def tri_backward_table_sparse(xn, g, res, scale, offset, lo, hi, stride, hashed,
         base = row_off[e]
         cb = cap_off[item]
         cnt = 0
-        R = np.empty((_BLOCK, 1, 8), np.int64)
-        W = np.empty((_BLOCK, 1, 6), np.float64)
+        X, I, R, W = _block_scratch(1)
         for n0 in range(0, N, _BLOCK):
             n1 = min(N, n0 + _BLOCK)
-            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, R, W, slot,
-                       2 if P == 1 else 0)
+            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, X, I, R, W,
+                       slot, 2 if P == 1 else 0)
             if P > 1:
                 for j in range(n1 - n0):
                     for c in range(8):
-                        r = R[j, 0, c]
+                        r = R[0, c, j]
                         if ((r - base) >> part_log2) % P == p:
                             prefetch_row_w(slot, r)
                         else:
-                            R[j, 0, c] = -1  # not this item's row
+                            R[0, c, j] = -1  # not this item's row
             for n in range(n0, n1):
                 j = n - n0
-                w = _tri_weights(W[j, 0, 0], W[j, 0, 1], W[j, 0, 2])
+                w = _tri_weights(W[0, 0, j], W[0, 1, j], W[0, 2, j])
                 for c in range(8):
-                    if R[j, 0, c] >= 0:
-                        cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, R[j, 0, c], w[c], g, n, e, F)
+                    if R[0, c, j] >= 0:
+                        cnt = _acc_sparse(slot, out_rows, out_vals, cb, cnt, R[0, c, j], w[c], g, n, e, F)
         counts[item] = cnt
         for k in range(cnt):
             slot[out_rows[cb + k]] = -1
@@ -516,32 +559,31 @@ def tri_forward(xn, table, res, scale, offset, lo, hi, stride, hashed, rows, row
     want_jac = jac.shape[0] > 0
     nb = (N + _BLOCK - 1) // _BLOCK
     for b in prange(nb):
-        R = np.empty((_BLOCK, E, 8), np.int64)
-        W = np.empty((_BLOCK, E, 6), np.float64)
+        X, I, R, W = _block_scratch(E)
         n0 = b * _BLOCK
         n1 = min(N, n0 + _BLOCK)
-        _tri_block(xn, n0, n1, 0, E, res, scale, offset, lo, hi, stride, hashed, rows, row_off, R, W, table, 1)
+        _tri_block(xn, n0, n1, 0, E, res, scale, offset, lo, hi, stride, hashed, rows, row_off, X, I, R, W, table, 1)
         for n in range(n0, n1):
-            j = n - n0
+            j = _u(n - n0)
             for e in range(E):
-                wx = W[j, e, 0]
-                wy = W[j, e, 1]
-                wz = W[j, e, 2]
-                dx = W[j, e, 3]
-                dy = W[j, e, 4]
-                dz = W[j, e, 5]
+                wx = W[e, 0, j]
+                wy = W[e, 1, j]
+                wz = W[e, 2, j]
+                dx = W[e, 3, j]
+                dy = W[e, 4, j]
+                dz = W[e, 5, j]
                 ux = 1.0 - wx
                 uy = 1.0 - wy
                 uz = 1.0 - wz
                 w0, w1, w2, w3, w4, w5, w6, w7 = _tri_weights(wx, wy, wz)
-                r0 = R[j, e, 0]
-                r1 = R[j, e, 1]
-                r2 = R[j, e, 2]
-                r3 = R[j, e, 3]
-                r4 = R[j, e, 4]
-                r5 = R[j, e, 5]
-                r6 = R[j, e, 6]
-                r7 = R[j, e, 7]
+                r0 = _u(R[e, 0, j])
+                r1 = _u(R[e, 1, j])
+                r2 = _u(R[e, 2, j])
+                r3 = _u(R[e, 3, j])
+                r4 = _u(R[e, 4, j])
+                r5 = _u(R[e, 5, j])
+                r6 = _u(R[e, 6, j])
+                r7 = _u(R[e, 7, j])
                 for f in range(F):
                     out[n, e, f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f]
                                     + w3 * table[r3, f] + w4 * table[r4, f] + w5 * table[r5, f]
@@ -628,24 +670,23 @@ def tri_backward_table_acc(xn, gT, res, scale, offset, lo, hi, stride, hashed, r
         e = _balanced(ie, E)
         base = row_off[e]
         mo = mark_off[e]
-        R = np.empty((_BLOCK, 1, 8), np.int64)
-        W = np.empty((_BLOCK, 1, 6), np.float64)
+        X, I, R, W = _block_scratch(1)
         for n0 in range(0, N, _BLOCK):
             n1 = min(N, n0 + _BLOCK)
-            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, R, W, acc,
-                       2)
+            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, X, I, R, W,
+                       acc, 2)
             for n in range(n0, n1):
-                j = n - n0
-                w = _tri_weights(W[j, 0, 0], W[j, 0, 1], W[j, 0, 2])
+                j = _u(n - n0)
+                w = _tri_weights(W[0, 0, j], W[0, 1, j], W[0, 2, j])
                 for c in range(8):
                     if w[c] != 0.0:  # zero-weight corner (e.g. a clamped point on the box face): not touched
-                        k = R[j, 0, c] - base
-                        mark[mo + (k >> 3)] |= np.uint8(1 << (k & 7))
+                        k = R[0, c, j] - base
+                        mark[_u(mo + (k >> 3))] |= np.uint8(1 << (k & 7))
                 for f in range(F):
-                    gv = np.float64(gT[e, n, f])
+                    gv = np.float64(gT[e, _u(n), f])
                     for c in range(8):
                         if w[c] != 0.0:
-                            acc[R[j, 0, c], f] += w[c] * gv
+                            acc[_u(R[0, c, j]), f] += w[c] * gv
         c = 0
         for b in range(mo, mo + (rows[e] + 7) // 8):
             c += _BIT_CNT[mark[b]]
