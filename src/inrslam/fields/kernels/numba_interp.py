@@ -6,9 +6,10 @@ the table backward parallelises over entries, whose row ranges are disjoint (or,
 dense grid, over interleaved row parts of an entry), and loops over points serially inside a work item, so no two
 threads ever write the same table row and each row's sum is in point order (entries are dealt to threads in the
 order 0, E−1, 1, E−2, … so that each thread gets both cheap coarse and cache-missing fine levels).
-Trilinear kernels work in blocks of points: rows and weights first, prefetching each corner's cache line
-(``prefetch.py``), then the gathers / scatters, which find them in cache. When the input gradient is needed, the forward also stores ∂out/∂p̂ so that the input
-backward is a contraction instead of a second lookup.
+Trilinear kernels work in blocks of points: rows and weights first (structure-of-arrays, vectorised), then a
+prefetch of each corner's cache line (``prefetch.py``), then the gathers / scatters, which find them in cache.
+When the input gradient is needed, the forward also stores ∂out/∂p̂ so that the input backward is a contraction
+instead of a second lookup.
 """
 
 from __future__ import annotations
