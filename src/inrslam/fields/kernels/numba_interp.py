@@ -376,26 +376,16 @@ def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, lo, hi, stride, hashed, r
         X[2, _u(j)] = np.float64(xn[_u(n0 + j), 2])
     for e in range(e0, e1):
         k = _u(e - e0)
-        for a in range(3):  # _axis_lean, vectorised over the points
+        for a in range(3):  # vectorised over the points
             s = scale[e, a]
             o = offset[e, a]
             lo_a = lo[e, a]
             hi_a = hi[e, a]
-            top = res[e, a] - 2
+            r = res[e, a]
             for j in range(m):
-                u = X[_u(a), _u(j)] * s + o
-                du = s
-                if u < lo_a:
-                    u = lo_a
-                    du = 0.0
-                elif u > hi_a:
-                    u = hi_a
-                    du = 0.0
-                i = np.int64(u)  # u ≥ 0: truncation is the floor
-                if i > top:
-                    i = top
+                i, w, du = _axis_lean(X[_u(a), _u(j)], s, o, lo_a, hi_a, r)
                 I[_u(a), _u(j)] = i
-                W[k, _u(a), _u(j)] = u - i
+                W[k, _u(a), _u(j)] = w
                 W[k, _u(a + 3), _u(j)] = du
         base = row_off[e]
         if hashed[e]:
