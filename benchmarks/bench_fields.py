@@ -1,9 +1,9 @@
 """Benchmark of the fused numba kernels vs the PyTorch reference (same run, same inputs). Prints a table.
 
-    python benchmarks/bench_fields.py [--reps 3] [--threads 1]
+    python benchmarks/bench_fields.py [--reps 5] [--threads 1]
 
 Points are mapping-batch-like: rays (60 samples each) through a 6 x 5 x 3 m box. Times are medians over reps
-after two warm-up calls per case (numba JIT is cached on disk). Peak memory = rise of the process's peak RSS
+after three warm-up calls per case (numba JIT is cached on disk). Peak memory = rise of the process's peak RSS
 (/proc/self/status VmHWM, reset through /proc/self/clear_refs) during one steady-state mapping step.
 """
 
@@ -36,7 +36,7 @@ def ray_points(n: int, seed: int = 0) -> torch.Tensor:
     return (o + d * t).reshape(-1, 3).contiguous()
 
 
-def timeit(fn, reps: int, warmup: int = 2) -> float:
+def timeit(fn, reps: int, warmup: int = 3) -> float:
     """Median wall time of fn over reps, after ``warmup`` untimed calls (numba cache load / JIT, one-time
     workspaces and allocator growth are all paid there)."""
     for _ in range(warmup):
@@ -96,7 +96,7 @@ def encoder_fwd_bwd(enc, x: torch.Tensor, kernel: str, wrt: str):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None,
                     help="torch and numba threads for both paths (default: all cores); 1 separates kernel cost from "
                          "thread-pool effects")

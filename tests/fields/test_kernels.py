@@ -183,3 +183,36 @@ def test_hash_index_matches_tcnn_formula():
     expected = table[(i ^ (j * 2654435761) ^ (k * 805459861)) % 256]
     for backend in ("numba", "torch"):
         assert multilinear(x, table.double(), spec, backend).item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_nan_points_are_rejected_with_a_clear_error():
+    spec, table, x = _case("hash")
+    x[7, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"1 of 400 points have NaN coordinates \(first: index 7\)"):
+        multilinear(x, table, spec, "numba")
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        multilinear(x[:, :2], table, spec, "numba")
+
+
+@pytest.mark.parametrize("name", ["dense", "hash", "planes+lines"])
+def test_kernels_called_directly_with_nan_stay_in_bounds(name):
+    """The raw numba kernels map a NaN coordinate to the box's low face (a defined row) instead of indexing out of
+    range; ``multilinear`` rejects NaN before they are reached."""
+    from inrslam.fields.kernels import numba_interp as nk
+    from inrslam.fields.kernels.function import _is_trilinear, _meta, _tri_meta
+
+    spec, table, x = _case(name)
+    x[:, 0] = float("nan")
+    xn, tab = x.numpy(), table.numpy()
+    low = x.clone()
+    low[:, 0] = 0.0
+    expected = interp_torch(low, table, spec)
+    out = np.zeros((x.shape[0], spec.n_entries, tab.shape[1]), np.float32)
+    if _is_trilinear(spec):
+        nk.tri_forward(xn, tab, *_tri_meta(spec), out, np.empty((0, spec.n_entries, tab.shape[1], 3), np.float32))
+        grad = np.zeros_like(tab)
+        nk.tri_backward_table_dense(xn, np.ones_like(out), *_tri_meta(spec), grad)
+        assert np.isfinite(grad).all()
+    else:
+        nk.interp_forward(xn, tab, *_meta(spec), out)
+    torch.testing.assert_close(torch.from_numpy(out), expected, rtol=1e-5, atol=1e-5)

@@ -51,7 +51,7 @@ def test_kept_sparse_gradient_is_not_overwritten_by_the_next_backward():
     x1, x2 = torch.rand(300, 3, generator=g), torch.rand(300, 3, generator=g)
     multilinear(x1, table, spec, "numba", sparse=True).sum().backward()
     kept = table.grad
-    assert unique_rows_of(spec, kept._values())  # straight from the fused backward: the optimizer trusts its rows
+    assert unique_rows_of(spec, kept._indices()[0], kept._values())  # straight from the fused backward: the optimizer trusts its rows
     expected = kept.to_dense().clone()
     table.grad = None
     multilinear(x2, table, spec, "numba", sparse=True).square().sum().backward()
@@ -77,3 +77,37 @@ def test_copies_and_pickles_of_a_spec_drop_the_kernel_scratch():
         t2 = table.detach().clone().requires_grad_()
         x = torch.rand(40, 3)
         torch.testing.assert_close(multilinear(x, t2, other, "numba"), multilinear(x, t2, spec, "torch"))
+
+
+def test_smallest_fitting_buffer_is_taken():
+    pool = BufferPool()
+    big, small = pool.take((1000,), np.float64), pool.take((10,), np.float64)
+    big_ptr, small_ptr = big.ctypes.data, small.ctypes.data
+    del big, small
+    a = pool.take((8,), np.float64)  # fits both: the small one
+    b = pool.take((900,), np.float64)  # only the big one fits
+    assert (a.ctypes.data, b.ctypes.data) == (small_ptr, big_ptr) and len(pool._bases) == 2
+
+
+def test_gradient_with_other_indices_on_the_same_values_is_not_trusted():
+    spec = InterpSpec.build(grid_entries(np.array([1.2, 1.0, 0.8]), 0.3, 0.05, 3, True, 10, False))
+    table = torch.randn(spec.total_rows, 2, requires_grad=True)
+    multilinear(torch.rand(100, 3), table, spec, "numba", sparse=True).sum().backward()
+    g = table.grad
+    idx = g._indices().clone()
+    idx[0, 1] = idx[0, 0]  # a duplicate row, same values memory
+    forged = torch.sparse_coo_tensor(idx, g._values(), g.shape, check_invariants=False)
+    assert unique_rows_of(spec, g._indices()[0], g._values())
+    assert not unique_rows_of(spec, forged._indices()[0], forged._values())
+
+
+def test_empty_gradient_can_be_accumulated():
+    spec = InterpSpec.build(grid_entries(np.array([1.2, 1.0, 0.8]), 0.3, 0.05, 3, True, 10, False))
+    table = torch.randn(spec.total_rows, 2, requires_grad=True)
+    multilinear(torch.zeros(0, 3), table, spec, "numba", sparse=True).sum().backward()
+    assert table.grad._nnz() == 0
+    x = torch.rand(30, 3)
+    multilinear(x, table, spec, "numba", sparse=True).sum().backward()  # accumulates into the empty gradient
+    t2 = table.detach().clone().requires_grad_()
+    multilinear(x, t2, spec, "torch").sum().backward()
+    torch.testing.assert_close(table.grad.to_dense(), t2.grad)

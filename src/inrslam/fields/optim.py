@@ -61,7 +61,7 @@ class LazyAdam(torch.optim.Optimizer):
                 return g.indices()[0], g.values()
             rows, vals = g._indices()[0].contiguous(), g._values().contiguous()
             spec = self._specs.get(id(p))
-            if spec is not None and unique_rows_of(spec, vals):
+            if spec is not None and unique_rows_of(spec, rows, vals):
                 return rows, vals  # straight from one fused backward: rows already unique
             vals2 = vals.reshape(vals.shape[0], -1)
             out_rows = np.empty(rows.shape[0], np.int64)

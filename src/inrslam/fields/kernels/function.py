@@ -106,23 +106,30 @@ def _sparse_grad(spec: InterpSpec, shape, dtype, counts: np.ndarray, fill) -> to
     """Sparse COO (M,F) table gradient of Σ counts unique rows, written into (rows, vals) by ``fill(rows, vals)``.
     Both arrays come from the spec's ``BufferPool``: a steady stream of backward passes reuses the same memory."""
     nnz = int(counts.sum())
+    if nnz == 0:  # torch-owned empty arrays: a later accumulation may resize them in place
+        return torch.sparse_coo_tensor(torch.empty((1, 0), dtype=torch.int64),
+                                       torch.from_numpy(np.empty((0, shape[1]), dtype)).clone(), shape,
+                                       check_invariants=False)
     pool = _grad_pool(spec)
     rows = pool.take((nnz,), np.int64)
     vals = pool.take((nnz, shape[1]), dtype)
     fill(rows, vals)
-    # lets the optimizer skip de-duplicating this exact gradient (the weak reference dies with its memory)
-    spec._unique_values = weakref.ref(vals)
+    # lets the optimizer skip de-duplicating this exact gradient (the weak references die with its memory)
+    spec._unique_grad = (weakref.ref(rows), weakref.ref(vals))
     return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], torch.from_numpy(vals), shape,
                                    check_invariants=False)
 
 
-def unique_rows_of(spec: InterpSpec, values: torch.Tensor) -> bool:
-    """True if ``values`` (a sparse gradient's values) are those of the last fused sparse gradient of ``spec``,
-    whose rows are unique."""
-    ref = getattr(spec, "_unique_values", None)
-    vals = ref() if ref is not None else None
-    return (vals is not None and values.device.type == "cpu" and vals.ctypes.data == values.data_ptr()
-            and vals.shape == tuple(values.shape))
+def unique_rows_of(spec: InterpSpec, rows: torch.Tensor, values: torch.Tensor) -> bool:
+    """True if ``rows`` (K,) and ``values`` (K,F) (a sparse gradient's) are those of the last fused sparse gradient
+    of ``spec``, whose rows are unique."""
+    refs = getattr(spec, "_unique_grad", None)
+    if refs is None or rows.device.type != "cpu" or values.device.type != "cpu":
+        return False
+    r, v = refs[0](), refs[1]()
+    return (r is not None and v is not None and r.ctypes.data == rows.data_ptr() and r.shape == tuple(rows.shape)
+            and v.ctypes.data == values.data_ptr() and v.shape == tuple(values.shape) and values.is_contiguous()
+            and rows.is_contiguous())
 
 
 def _level_major(g: np.ndarray, spec: InterpSpec) -> np.ndarray:
@@ -237,6 +244,12 @@ def multilinear(xn: torch.Tensor, table: torch.Tensor, spec: InterpSpec, backend
         raise ValueError("kernel='numba' needs CPU tensors; use kernel='auto' or 'torch' on other devices")
     if table.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"kernel='numba' supports float32/float64 tables, got {table.dtype}")
+    if xn.dim() != 2 or xn.shape[-1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {tuple(xn.shape)}")
+    if bool(torch.isnan(xn).any()):
+        nan = torch.isnan(xn).any(dim=1)
+        raise ValueError(f"{int(nan.sum())} of {xn.shape[0]} points have NaN coordinates (first: index "
+                         f"{int(nan.nonzero()[0, 0])}); points must be numbers (±inf is clamped to the box)")
     if sparse is None:
         sparse = table.shape[0] > DENSE_GRAD_MAX_ROWS
     xn = xn.to(table.dtype)

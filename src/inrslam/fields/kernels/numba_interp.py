@@ -30,7 +30,7 @@ _u = np.uint64  # an unsigned index: no negative-index wrap-around code (see ``_
 def _axis(p, scale, offset, res):
     """Corner index i, weight w and du/dp̂ (0 where a clamp is active) of one axis."""
     du = scale
-    if p < 0.0:
+    if not p >= 0.0:  # (NaN lands here: a defined row, never an out-of-range one)
         p = 0.0
         du = 0.0
     elif p > 1.0:
@@ -272,7 +272,7 @@ def _axis_lean(p, scale, offset, lo, hi, res):
     """``_axis`` with its two clamps merged into one of u to [lo, hi] (``InterpSpec.lo/hi``); same results."""
     u = p * scale + offset
     du = scale
-    if u < lo:
+    if not u >= lo:  # (NaN lands here: a defined row, never an out-of-range one)
         u = lo
         du = 0.0
     elif u > hi:

@@ -16,8 +16,9 @@ import numpy as np
 
 
 class BufferPool:
-    """At most ``max_buffers`` kept base arrays; ``take`` returns a view of a free one (grown if too small), or a
-    plain new array when all are in use."""
+    """At most ``max_buffers`` kept base arrays; ``take`` returns a view of a free one (the smallest that fits, else
+    the largest grown), or a plain new array when all are in use. Not thread-safe: like the other scratch that the
+    kernels keep on an ``InterpSpec``, one spec serves one thread at a time."""
 
     def __init__(self, max_buffers: int = 8):
         self.max_buffers = max_buffers
@@ -31,8 +32,11 @@ class BufferPool:
         need = max(1, math.prod(shape)) * dtype.itemsize
         free = [i for i, user in enumerate(self._users) if user is None or user() is None]
         if free:
-            i = max(free, key=lambda k: self._bases[k].nbytes)
-            if self._bases[i].nbytes < need:  # grow with headroom: sizes vary a little from call to call
+            fits = [k for k in free if self._bases[k].nbytes >= need]
+            if fits:  # the smallest free buffer that fits
+                i = min(fits, key=lambda k: self._bases[k].nbytes)
+            else:  # grow the largest free one, with headroom: sizes vary a little from call to call
+                i = max(free, key=lambda k: self._bases[k].nbytes)
                 self._bases[i] = np.empty(need + need // 4, np.uint8)
         elif len(self._bases) < self.max_buffers:
             i = len(self._bases)

@@ -15,6 +15,7 @@ idx_e(i) = (i_0·1 ⊕ i_1·2654435761 ⊕ i_2·805459861) mod rows[e] (rows[e] 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,9 +42,10 @@ class InterpSpec:
     _torch_cache: dict = field(default_factory=dict, repr=False)
 
     def __getstate__(self) -> dict:
-        """Copies and pickles carry the metadata only: the kernels' scratch arrays, buffer pools and caches that
-        they keep as ``_``-attributes on the spec are rebuilt on first use."""
-        return {k: v for k, v in self.__dict__.items() if not k.startswith("_")} | {"_torch_cache": {}}
+        """Copies and pickles carry the dataclass fields only: the scratch arrays, buffer pools and caches that the
+        kernels keep as extra attributes on the spec are rebuilt on first use."""
+        fields = {f.name for f in dataclasses.fields(self)}
+        return {k: v for k, v in self.__dict__.items() if k in fields} | {"_torch_cache": {}}
 
     @property
     def n_entries(self) -> int:
