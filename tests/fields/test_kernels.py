@@ -185,19 +185,30 @@ def test_hash_index_matches_tcnn_formula():
         assert multilinear(x, table.double(), spec, backend).item() == pytest.approx(expected.item(), rel=1e-6)
 
 
-def test_nan_points_are_rejected_with_a_clear_error():
-    spec, table, x = _case("hash")
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+@pytest.mark.parametrize("name", ["dense", "hash", "planes+lines"])
+def test_nan_points_get_nan_features_and_no_gradient(backend, name):
+    spec, table, x = _case(name)
     x[7, 1] = float("nan")
-    with pytest.raises(ValueError, match=r"1 of 400 points have NaN coordinates \(first: index 7\)"):
-        multilinear(x, table, spec, "numba")
+    x[30, 0] = float("nan")
+    cot = torch.randn(x.shape[0], spec.n_entries, table.shape[1])
+    out, gx, gt = _grads(backend, spec, table, x, cot)
+    ok = torch.ones(x.shape[0], dtype=torch.bool)
+    ok[[7, 30]] = False
+    assert torch.isnan(out[~ok]).all() and torch.isfinite(out[ok]).all()
+    o_ref, gx_ref, gt_ref = _grads("torch", spec, table, x[ok], cot[ok])  # the same without the NaN points
+    torch.testing.assert_close(out[ok], o_ref, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(gt, gt_ref, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(gx[ok], gx_ref, rtol=1e-5, atol=1e-4 * gx_ref.abs().max().item())
+    assert torch.all(gx[~ok] == 0)
     with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
-        multilinear(x[:, :2], table, spec, "numba")
+        multilinear(x[:, :2], table, spec, backend)
 
 
 @pytest.mark.parametrize("name", ["dense", "hash", "planes+lines"])
 def test_kernels_called_directly_with_nan_stay_in_bounds(name):
     """The raw numba kernels map a NaN coordinate to the box's low face (a defined row) instead of indexing out of
-    range; ``multilinear`` rejects NaN before they are reached."""
+    range (``multilinear`` never passes them one)."""
     from inrslam.fields.kernels import numba_interp as nk
     from inrslam.fields.kernels.function import _is_trilinear, _meta, _tri_meta
 

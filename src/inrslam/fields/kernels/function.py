@@ -229,27 +229,34 @@ class MultilinearFn(torch.autograd.Function):
 
 def multilinear(xn: torch.Tensor, table: torch.Tensor, spec: InterpSpec, backend: str = "auto",
                 sparse: bool | None = None) -> torch.Tensor:
-    """Multilinear lookup of E entries: xn (N,3) in [0,1] (clamped), table (M,F) -> (N,E,F).
+    """Multilinear lookup of E entries: xn (N,3) in [0,1] (clamped; ±inf too), table (M,F) -> (N,E,F).
 
+    A point with a NaN coordinate gets NaN features and no gradient (a loss over it turns NaN, which the SLAM loop
+    treats as a failed step), on every backend.
     backend: "numba" (fused CPU kernel), "torch" (reference, any device) or "auto" (numba on CPU tensors).
     sparse: table-gradient layout of the fused path; None = sparse iff M > DENSE_GRAD_MAX_ROWS.
     """
     if backend == "auto":
         backend = "numba" if table.device.type == "cpu" else "torch"
+    if backend not in ("torch", "numba"):
+        raise ValueError(f"unknown kernel backend {backend!r} (choices: auto, torch, numba)")
+    if xn.dim() != 2 or xn.shape[-1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {tuple(xn.shape)}")
+    nan = torch.isnan(xn).any(dim=1)
+    if xn.device.type != "cpu" or bool(nan.any()):  # (on a GPU: no host sync to find out)
+        out = _lookup(torch.where(nan[:, None], torch.zeros_like(xn), xn), table, spec, backend, sparse)
+        return out.masked_fill(nan[:, None, None], float("nan"))
+    return _lookup(xn, table, spec, backend, sparse)
+
+
+def _lookup(xn: torch.Tensor, table: torch.Tensor, spec: InterpSpec, backend: str, sparse: bool | None
+            ) -> torch.Tensor:
     if backend == "torch":
         return interp_torch(xn.to(table.dtype), table, spec)
-    if backend != "numba":
-        raise ValueError(f"unknown kernel backend {backend!r} (choices: auto, torch, numba)")
     if table.device.type != "cpu" or xn.device.type != "cpu":
         raise ValueError("kernel='numba' needs CPU tensors; use kernel='auto' or 'torch' on other devices")
     if table.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"kernel='numba' supports float32/float64 tables, got {table.dtype}")
-    if xn.dim() != 2 or xn.shape[-1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {tuple(xn.shape)}")
-    if bool(torch.isnan(xn).any()):
-        nan = torch.isnan(xn).any(dim=1)
-        raise ValueError(f"{int(nan.sum())} of {xn.shape[0]} points have NaN coordinates (first: index "
-                         f"{int(nan.nonzero()[0, 0])}); points must be numbers (±inf is clamped to the box)")
     if sparse is None:
         sparse = table.shape[0] > DENSE_GRAD_MAX_ROWS
     xn = xn.to(table.dtype)
