@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 from inrslam.geometry.se3 import compose_qt, matrix_to_quat, se3_exp
 from inrslam.slam.config import PoseParam
 from inrslam.slam.keyframes import KeyframeStore
-from inrslam.slam.poses import PoseSet, constant_velocity, relative_trajectory
+from inrslam.slam.poses import PoseSet, constant_velocity, ray_poses, relative_trajectory
 
 
 def random_poses(n, seed=0):
@@ -97,3 +97,22 @@ def test_relative_trajectory_carries_non_keyframes_with_their_refined_keyframe()
         assert np.allclose(np.linalg.inv(out[k]) @ out[i], np.linalg.inv(tracked[k]) @ tracked[i])
     # without refinement the relative trajectory is the absolute one
     assert np.allclose(relative_trajectory(tracked, rel, rel_kf, [0, 3]), tracked)
+
+
+def test_ray_poses_gradient_is_the_same_on_every_run():
+    """Mapping gathers a pose per ray; its gradient sums thousands of rays per pose and must not depend on thread
+    timing (``mats[slots]`` gave a different gradient on each of 50 runs here, 2 threads)."""
+    g = torch.Generator().manual_seed(0)
+    mats = torch.randn(8, 4, 4, generator=g, requires_grad=True)
+    slots = torch.randint(0, 8, (8192,), generator=g)
+    cot = torch.randn(8192, 4, 4, generator=g)
+    out = ray_poses(mats, slots)
+    assert torch.equal(out, mats.detach()[slots])
+    grads = set()
+    for _ in range(20):
+        mats.grad = None
+        (ray_poses(mats, slots) * cot).sum().backward()
+        grads.add(mats.grad.numpy().tobytes())
+    assert len(grads) == 1
+    expected = torch.zeros(8, 4, 4, dtype=torch.float64).index_add_(0, slots, cot.double())
+    torch.testing.assert_close(mats.grad.double(), expected, rtol=1e-5, atol=1e-4)

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from inrslam.rendering.losses import depth_l1, psnr_from_mse
-from inrslam.slam.poses import PoseSet
+from inrslam.slam.poses import PoseSet, ray_poses
 
 
 @dataclass
@@ -42,7 +42,7 @@ def map_frame(model, optimizers: dict, store, kf_c2w: Tensor, cur_c2w: Tensor, c
         dirs_c, rgb_c, depth_c = cur_rays(n_cur)
         slots = torch.cat([slot, torch.full((dirs_c.shape[0],), K, dtype=torch.long, device=slot.device)])
         mats = torch.cat([all_c2w[:1], poses.matrices()]) if do_ba else all_c2w
-        c2w = mats[slots]
+        c2w = ray_poses(mats, slots)
         losses, out = model.loss(c2w, torch.cat([dirs_kf, dirs_c]), torch.cat([rgb_kf, rgb_c]),
                                  torch.cat([depth_kf, depth_c]), generator)
         if not optimisation_step(losses["total"], optimizers):

@@ -41,6 +41,13 @@ class PoseSet(nn.Module):
         return se3_exp(self.xi) @ self.base
 
 
+def ray_poses(mats: Tensor, slots: Tensor) -> Tensor:
+    """(N,4,4) pose of every ray from (K,4,4) poses and (N,) int64 slots, with a deterministic backward:
+    ``index_select`` sums each pose's gradient in a fixed order, while ``mats[slots]`` adds them atomically from
+    several threads on a CPU (a different rounding on every run)."""
+    return mats.index_select(0, slots)
+
+
 def constant_velocity(prev: Tensor, prev2: Tensor | None) -> Tensor:
     """Predict the next c2w: (prev @ prev2^-1) @ prev (world-frame delta on the left); prev when prev2 is None."""
     if prev2 is None:

@@ -47,6 +47,7 @@ def interp_torch(xn: torch.Tensor, table: torch.Tensor, spec: InterpSpec) -> tor
             h = h & (int(spec.rows[e]) - 1)
         else:
             h = (ic * t["stride"][e, :d]).sum(-1)
-        feats = table[h + int(spec.row_off[e])]  # (N,C,F)
+        # index_select, not table[rows]: the latter's CPU backward adds atomically in no fixed order (not deterministic)
+        feats = table.index_select(0, (h + int(spec.row_off[e])).reshape(-1)).reshape(h.shape + table.shape[1:])
         outs.append((wc.unsqueeze(-1) * feats).sum(1))
     return torch.stack(outs, dim=1)
