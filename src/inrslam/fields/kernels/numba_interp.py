@@ -388,22 +388,18 @@ def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, lo, hi, stride, hashed, r
                 W[k, _u(a), _u(j)] = w
                 W[k, _u(a + 3), _u(j)] = du
         base = row_off[e]
-        if hashed[e]:
-            mask = rows[e] - 1
-            for c in range(8):
-                bx = c & 1
-                by = (c >> 1) & 1
-                bz = c >> 2
-                for j in range(m):
-                    R[k, _u(c), _u(j)] = base + (((I[0, _u(j)] + bx) ^ ((I[1, _u(j)] + by) * _P1)
-                                                  ^ ((I[2, _u(j)] + bz) * _P2)) & mask)
-        else:
-            sy = stride[e, 1]
-            sz = stride[e, 2]
-            for c in range(8):
-                off = base + (c & 1) + ((c >> 1) & 1) * sy + (c >> 2) * sz
-                for j in range(m):
-                    R[k, _u(c), _u(j)] = off + I[0, _u(j)] + I[1, _u(j)] * sy + I[2, _u(j)] * sz
+        h = hashed[e]
+        n_rows = rows[e]
+        sx = stride[e, 0]
+        sy = stride[e, 1]
+        sz = stride[e, 2]
+        for c in range(8):
+            bx = c & 1
+            by = (c >> 1) & 1
+            bz = c >> 2
+            for j in range(m):
+                R[k, _u(c), _u(j)] = base + _row(h, n_rows, I[0, _u(j)] + bx, I[1, _u(j)] + by, I[2, _u(j)] + bz,
+                                                 sx, sy, sz)
     if mode == 0:
         return
     for e in range(e0, e1):
