@@ -242,11 +242,11 @@ def multilinear(xn: torch.Tensor, table: torch.Tensor, spec: InterpSpec, backend
         raise ValueError(f"unknown kernel backend {backend!r} (choices: auto, torch, numba)")
     if xn.dim() != 2 or xn.shape[-1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {tuple(xn.shape)}")
+    if xn.device.type == "cpu" and not bool(torch.isnan(xn).any()):  # (on a GPU: no host sync to find out)
+        return _lookup(xn, table, spec, backend, sparse)
     nan = torch.isnan(xn).any(dim=1)
-    if xn.device.type != "cpu" or bool(nan.any()):  # (on a GPU: no host sync to find out)
-        out = _lookup(torch.where(nan[:, None], torch.zeros_like(xn), xn), table, spec, backend, sparse)
-        return out.masked_fill(nan[:, None, None], float("nan"))
-    return _lookup(xn, table, spec, backend, sparse)
+    out = _lookup(torch.where(nan[:, None], torch.zeros_like(xn), xn), table, spec, backend, sparse)
+    return out.masked_fill(nan[:, None, None], float("nan"))
 
 
 def _lookup(xn: torch.Tensor, table: torch.Tensor, spec: InterpSpec, backend: str, sparse: bool | None
