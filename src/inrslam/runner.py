@@ -23,6 +23,7 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress=None, overwrite: bool = F
         progress: optional callable(frame_index, n_frames, info) called after every frame.
     """
     from inrslam.data.open import open_dataset
+    from inrslam.fields.kernels.threads import resolve_threads, thread_scope
     from inrslam.slam.system import SlamSystem
 
     out = Path(out_dir)
@@ -37,14 +38,17 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress=None, overwrite: bool = F
         for name in RUN_DIRS:
             shutil.rmtree(out / name, ignore_errors=True)
     dataset = open_dataset(cfg.data)
-    system = SlamSystem(cfg, dataset, out, progress=progress)
-    system.run(resume=False)
-    return _evaluate(system)
+    threads = resolve_threads(cfg.threads)
+    with thread_scope(threads):
+        system = SlamSystem(cfg, dataset, out, progress=progress, threads=threads)
+        system.run(resume=False)
+        return _evaluate(system)
 
 
 def resume_slam(run_dir: str | os.PathLike, progress=None) -> Path:
     """Continue an interrupted run from its last checkpoint, with the run's own resolved `config.yaml`."""
     from inrslam.data.open import open_dataset
+    from inrslam.fields.kernels.threads import resolve_threads, thread_scope
     from inrslam.slam.system import SlamSystem
 
     run_dir = Path(run_dir)
@@ -53,9 +57,23 @@ def resume_slam(run_dir: str | os.PathLike, progress=None) -> Path:
         raise ConfigError(f"{run_dir}: not a run directory (no config.yaml)")
     cfg = load_config(cfg_path, preset=None)
     dataset = open_dataset(cfg.data)
-    system = SlamSystem(cfg, dataset, run_dir, progress=progress)
-    system.run(resume=True)
-    return _evaluate(system)
+    threads = _recorded_threads(run_dir) if not cfg.threads else None
+    threads = threads or resolve_threads(cfg.threads)
+    with thread_scope(threads):
+        system = SlamSystem(cfg, dataset, run_dir, progress=progress, threads=threads)
+        system.run(resume=True)
+        return _evaluate(system)
+
+
+def _recorded_threads(run_dir: Path) -> int | None:
+    """The thread count an interrupted run used (`run_info.json`), so its resumed part sums in the same order."""
+    import json
+
+    try:
+        n = json.loads((run_dir / "run_info.json").read_text()).get("threads")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return int(n) if isinstance(n, int) and n > 0 else None
 
 
 def _evaluate(system) -> Path:

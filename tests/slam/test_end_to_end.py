@@ -73,6 +73,22 @@ def test_determinism_same_seed(run_a, tmp_path):
     assert (tmp_path / "b" / "trajectory.txt").read_text() == (run_a / "trajectory.txt").read_text()
 
 
+def test_run_holds_its_own_thread_count_whatever_the_process_left_set(run_a, tmp_path):
+    """A caller that left torch / numba at 1 thread (as a sweep worker did) must not change a run's result: the run
+    resolves `threads: 0` to every core, records it, and gives the caller its counts back."""
+    import numba
+    import torch
+
+    from inrslam.fields.kernels.threads import resolve_threads, thread_scope
+
+    with thread_scope(1):
+        run_slam(quick_cfg(), tmp_path / "b")
+        assert (torch.get_num_threads(), numba.get_num_threads()) == (1, 1)
+    assert (tmp_path / "b" / "trajectory.txt").read_text() == (run_a / "trajectory.txt").read_text()
+    info = json.loads((tmp_path / "b" / "run_info.json").read_text())
+    assert info["threads"] == resolve_threads(0)
+
+
 def test_killed_run_resumes_to_identical_result(run_a, tmp_path):
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "inrslam.cli", "run", "--preset", "quick", "--out", str(out), "--quiet", *OVERRIDES,

@@ -78,19 +78,44 @@ def set_threads(n: int) -> None:
         sys.modules["torch"].set_num_threads(n)
 
 
+_THREAD_VARS = (THREADS_ENV, "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+def _thread_state() -> dict:
+    """This process's thread settings: the environment variables `set_threads` changes, torch's and numba's counts."""
+    state = {"env": {v: os.environ.get(v) for v in _THREAD_VARS}}
+    if "torch" in sys.modules:
+        state["torch"] = sys.modules["torch"].get_num_threads()
+    if "numba" in sys.modules:
+        state["numba"] = sys.modules["numba"].get_num_threads()
+    return state
+
+
+def _restore_thread_state(state: dict) -> None:
+    for var, val in state["env"].items():
+        if val is None:
+            os.environ.pop(var, None)
+        else:
+            os.environ[var] = val
+    if "torch" in state:
+        sys.modules["torch"].set_num_threads(state["torch"])
+    if "numba" in state:
+        sys.modules["numba"].set_num_threads(state["numba"])
+
+
 def slam_run(run: dict, run_dir: Path) -> dict:
     """Default run function: resume a checkpointed partial run, else start it over (overwrite)."""
-    import torch
+    import dataclasses
 
     from inrslam.bench.spec import RunSpec, resolve_config
     from inrslam import runner as slam
 
-    if os.environ.get(THREADS_ENV):
-        torch.set_num_threads(int(os.environ[THREADS_ENV]))
     if has_checkpoint(run_dir):
-        slam.resume_slam(run_dir, progress=None)
+        slam.resume_slam(run_dir, progress=None)  # at the thread count its run_info.json records
         return {"resumed": True}
     cfg = resolve_config(RunSpec.from_dict(run))
+    if not cfg.threads and os.environ.get(THREADS_ENV):  # the executor's per-job share of the cores
+        cfg = dataclasses.replace(cfg, threads=int(os.environ[THREADS_ENV]))
     slam.run_slam(cfg, run_dir, progress=None, overwrite=True)
     return {"resumed": False}
 
@@ -107,7 +132,7 @@ def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | N
     if is_complete(run_dir):
         return {**result, "status": "skipped"}
     t0 = time.perf_counter()
-    torch_threads = sys.modules["torch"].get_num_threads() if "torch" in sys.modules else None  # in-process runs
+    saved = _thread_state()  # in-process runs give the caller its thread counts and environment back
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / "error.txt").unlink(missing_ok=True)
@@ -131,7 +156,6 @@ def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | N
         if isinstance(e, KeyboardInterrupt):
             raise
     finally:
-        if torch_threads is not None:
-            sys.modules["torch"].set_num_threads(torch_threads)
+        _restore_thread_state(saved)
     result["seconds"] = time.perf_counter() - t0
     return result

@@ -71,17 +71,15 @@ class FrameTensors:
 class SlamSystem:
     """Runs SLAM on a dataset and writes the run directory `out_dir` (layout in docs/design.md)."""
 
-    def __init__(self, cfg, dataset, out_dir: str | os.PathLike, progress=None):
+    def __init__(self, cfg, dataset, out_dir: str | os.PathLike, progress=None, threads: int | None = None):
         self.cfg = cfg
+        # the torch / numba thread count the caller holds for this run (recorded: results are bit-identical only
+        # at one count); None = whatever the process has set
+        self.threads = threads
         self.dataset = dataset
         self.out = Path(out_dir)
         self.progress = progress  # callable(frame_idx, n_frames, info: dict) or None
         self.device = resolve_device(cfg.device)
-        if cfg.threads:
-            torch.set_num_threads(cfg.threads)
-            import numba
-
-            numba.set_num_threads(min(cfg.threads, numba.config.NUMBA_NUM_THREADS))
         torch.manual_seed(cfg.seed)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.n_frames = len(dataset)
@@ -150,6 +148,7 @@ class SlamSystem:
             "versions": {"inrslam": inrslam.__version__, "torch": torch.__version__, "numpy": np.__version__,
                          "python": platform.python_version()},
             "device": str(self.device),
+            "threads": self.threads if self.threads is not None else torch.get_num_threads(),
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
         }
