@@ -130,3 +130,38 @@ def test_read_tum_missing_file_and_commas(tmp_path):
     ts, T = read_tum(p)
     assert ts.tolist() == [0.5] and np.allclose(T[0], np.array([[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3],
                                                                 [0, 0, 0, 1.0]]))
+
+
+def test_run_dir_names_every_path_and_clears_only_its_own_files(tmp_path):
+    from inrslam.io.rundir import RunDir
+
+    rd = RunDir(tmp_path / "run")
+    assert rd.checkpoint == tmp_path / "run" / "checkpoints" / "latest.pt"
+    assert rd.mesh_at(7) == tmp_path / "run" / "meshes" / "mesh_000007.ply"
+    with pytest.raises(KeyError, match="no run-directory entry 'metric'"):
+        rd.path("metric")
+    assert not rd.holds_run() and not rd.is_complete() and not rd.has_checkpoint()
+    for key in RunDir.FILES:
+        p = rd.path(key)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text("{}")
+    rd.meshes.mkdir()
+    rd.mesh_at(3).write_text("ply")
+    rd.bench.write_text("{}")  # the sweep's own file survives a clear
+    (rd.root / "notes.txt").write_text("mine")
+    assert rd.holds_run() and rd.has_checkpoint() and not rd.is_complete()  # run_info has no status
+    rd.clear()
+    assert sorted(p.name for p in rd.root.iterdir()) == ["bench.json", "notes.txt"]
+
+
+def test_run_dir_complete_needs_a_readable_metrics_file(tmp_path):
+    from inrslam.io.rundir import RunDir
+
+    rd = RunDir(tmp_path)
+    rd.run_info.write_text('{"status": "complete"}')
+    rd.metrics.write_text('{"ate_rmse_m": 0.0')  # truncated
+    assert not rd.is_complete() and rd.read_metrics() is None
+    rd.write_metrics({"ate_rmse_m": 0.01})
+    assert rd.is_complete()
+    assert rd.update_metrics({"psnr_db": 30.0}) == {"ate_rmse_m": 0.01, "psnr_db": 30.0}
+    assert rd.read_metrics() == {"ate_rmse_m": 0.01, "psnr_db": 30.0}

@@ -188,11 +188,10 @@ def _current_ate(est, gt) -> float | None:
 
 
 def _print_metrics(console, run_dir: Path) -> None:
-    import json
-
     from inrslam.eval.run import format_table
+    from inrslam.io.rundir import RunDir
 
-    metrics = json.loads((Path(run_dir) / "metrics.json").read_text())
+    metrics = RunDir(run_dir).read_metrics() or {}
     console.print(format_table(metrics))
     console.print(f"Outputs in [bold]{run_dir}[/bold]: trajectory.txt, mesh.ply, metrics.json, log.jsonl, config.yaml")
 
@@ -269,7 +268,9 @@ def _run_eval_config(args):
     from inrslam.config.loader import build_config
     from inrslam.eval.config import Alignment, EvalConfig
 
-    cfg_path = Path(args.run_dir) / "config.yaml"
+    from inrslam.io.rundir import RunDir
+
+    cfg_path = RunDir(args.run_dir).config
     cfg = EvalConfig()
     if cfg_path.is_file():  # only the `eval:` section matters here (other sections may come from older versions)
         section = (yaml.safe_load(cfg_path.read_text()) or {}).get("eval") or {}

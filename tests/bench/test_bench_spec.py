@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from inrslam.bench.spec import SPEC_DIR, expand, expand_env, load_spec, run_name, sanitize
+from inrslam.bench.spec import SPEC_DIR, expand, expand_env, load_spec, resolve_config, run_name, sanitize
 from inrslam.errors import ConfigError
 
 BASE = {"encodings": ["dense", "hash+tri"], "renders": ["density", "direct", "neus"], "scenes": ["builtin:room"]}
@@ -117,7 +117,8 @@ def test_shipped_specs_load_and_use_registered_names():
     from inrslam.fields.registry import ENCODINGS
     from inrslam.rendering import RENDERERS
 
-    counts = {"tiny": 4, "builtin_small": 7 * 2 * 3, "room_fxg": 5 * 2, "builtin_fxg": 5 * 2 * 2, "7scenes_fxg": 5 * 2, "replica": 5 * 3 * 8, "neuralrgbd": 6 * 3 * 7}
+    counts = {"tiny": 4, "builtin_small": 7 * 2 * 3, "room_fxg": 5 * 2, "builtin_fxg": 5 * 2 * 2, "7scenes_fxg": 5 * 2, "replica": 5 * 3 * 8, "neuralrgbd": 6 * 3 * 7,
+              "presets_builtin": 2 * 1 * 4 * 3}
     assert sorted(p.stem for p in SPEC_DIR.glob("*.yaml")) == sorted(counts)
     for name, n in counts.items():
         spec = load_spec(name)
@@ -125,6 +126,9 @@ def test_shipped_specs_load_and_use_registered_names():
         assert all(e in ENCODINGS for e in spec.encodings), name
         assert all(g in RENDERERS for g in spec.renders), name
     assert load_spec("builtin_small").encodings == ENCODINGS.names()  # all 7 encodings
+    first = expand(load_spec("presets_builtin"))[:3]  # room x dense x direct x {paper, accurate, gicp}
+    inits = {r.preset: resolve_config(r).slam.init.value for r in first}
+    assert inits == {"paper": "const_velocity", "accurate": "gicp", "gicp": "gicp"}
     tiny = load_spec("tiny")
     assert tiny.presets == ["quick"] and len(tiny.scenes) == 1 and tiny.scenes[0].path.startswith("builtin:")
 

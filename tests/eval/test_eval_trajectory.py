@@ -217,3 +217,23 @@ def test_associate_indices_and_select_frames():
     assert ate(e, g)["n_used"] == 6
     with pytest.raises(ValueError):
         select_frames([50], est)
+
+
+def test_drift_per_100_of_a_linearly_growing_error_and_invariance_to_the_start_pose():
+    from inrslam.eval.trajectory import drift_per_100
+
+    n = 51
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    gt[:, 0, 3] = np.linspace(0.0, 1.0, n)  # 2 cm per frame along x
+    est = gt.copy()
+    est[:, 1, 3] += 0.001 * np.arange(n)  # error grows 1 mm per frame, sideways
+    d = drift_per_100(est, gt)
+    assert d["drift_m_per_100"] == pytest.approx(0.1) and d["final_m"] == pytest.approx(0.05)
+    # the same relative error from another start pose (est is only known up to its first frame)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    T[:3, 3] = (3.0, -2.0, 0.5)
+    assert drift_per_100(T @ est, gt)["drift_m_per_100"] == pytest.approx(0.1)
+    assert drift_per_100(gt, gt)["drift_m_per_100"] == 0.0
+    one = drift_per_100(est[:1], gt[:1])
+    assert np.isnan(one["drift_m_per_100"])

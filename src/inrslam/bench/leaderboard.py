@@ -19,6 +19,7 @@ import yaml
 
 from inrslam.bench.spec import scene_short_name
 from inrslam.bench.worker import is_complete, read_json
+from inrslam.io.rundir import RunDir
 
 MISSING = "–"
 SKIP_DIRS = {"report", "slurm", "checkpoints", "meshes", "tensorboard"}
@@ -99,7 +100,8 @@ class RunRecord:
 
 
 def _is_run_dir(d: Path) -> bool:
-    return any((d / f).is_file() for f in ("run_info.json", "metrics.json", "config.yaml", "bench.json", "error.txt"))
+    rd = RunDir(d)
+    return any(p.is_file() for p in (rd.run_info, rd.metrics, rd.config, rd.bench, rd.error))
 
 
 def find_run_dirs(runs_dir: str | os.PathLike, exclude: Path | None = None) -> list[Path]:
@@ -121,11 +123,12 @@ def find_run_dirs(runs_dir: str | os.PathLike, exclude: Path | None = None) -> l
 def read_run(run_dir: str | os.PathLike) -> RunRecord:
     """RunRecord from one run directory (missing files give empty fields)."""
     d = Path(run_dir)
-    metrics = read_json(d / "metrics.json") or {}
-    info = read_json(d / "run_info.json") or {}
-    bench = read_json(d / "bench.json") or {}
+    rd = RunDir(d)
+    metrics = rd.read_metrics() or {}
+    info = rd.read_run_info() or {}
+    bench = rd.read_json("bench") or {}
     try:
-        config = yaml.safe_load((d / "config.yaml").read_text()) or {}
+        config = yaml.safe_load(rd.config.read_text()) or {}
     except (OSError, yaml.YAMLError):
         config = {}
     data_path = (config.get("data") or {}).get("path") or (info.get("dataset") or {}).get("root") or ""
@@ -134,8 +137,8 @@ def read_run(run_dir: str | os.PathLike) -> RunRecord:
     render = metrics.get("render") or info.get("render") or (config.get("render") or {}).get("name") or "?"
     seed = bench.get("seed", config.get("seed"))
     err = None
-    if (d / "error.txt").is_file():
-        lines = [ln for ln in (d / "error.txt").read_text().splitlines() if ln.strip()]
+    if rd.error.is_file():
+        lines = [ln for ln in rd.error.read_text().splitlines() if ln.strip()]
         err = lines[-1] if lines else "error"
     complete = is_complete(d)
     status = "complete" if complete else ("failed" if err else info.get("status", "not started"))

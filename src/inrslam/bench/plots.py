@@ -16,6 +16,7 @@ from inrslam.bench.leaderboard import (COLUMNS, ENCODING_LABELS, Column, RunReco
                                        render_label)
 from inrslam.bench.spec import sanitize
 from inrslam.io.atomic import atomic_path
+from inrslam.io.rundir import RunDir
 
 MARKERS = "osD^v<>pPX*h"
 
@@ -139,15 +140,15 @@ def ate_over_frames(run_dir: str | os.PathLike, align: str | None = None) -> tup
 
     d = Path(run_dir)
     try:
-        ts_e, est = read_tum(d / "trajectory.txt")
-        ts_g, gt = read_tum(d / "trajectory_gt.txt")
+        ts_e, est = read_tum(RunDir(d).trajectory)
+        ts_g, gt = read_tum(RunDir(d).trajectory_gt)
     except DataError:
         return None
     if align is None:
         import yaml
 
         try:
-            cfg = yaml.safe_load((d / "config.yaml").read_text()) or {}
+            cfg = yaml.safe_load(RunDir(d).config.read_text()) or {}
         except (OSError, yaml.YAMLError):
             cfg = {}
         align = str((cfg.get("eval") or {}).get("align") or "se3")

@@ -25,6 +25,7 @@ from inrslam.bench.spec import RunSpec, expand, load_spec, validate_runs
 from inrslam.bench.worker import fn_path, has_checkpoint, is_complete
 from inrslam.errors import ConfigError
 from inrslam.io.atomic import write_json, write_text
+from inrslam.io.rundir import RunDir
 
 STATUS_FILE = "sweep_status.json"
 
@@ -83,7 +84,7 @@ def config_differences(run_dir: Path, cfg) -> list[str]:
     from inrslam.config.loader import config_to_dict
 
     try:
-        old = _flatten(yaml.safe_load((run_dir / "config.yaml").read_text()) or {})
+        old = _flatten(yaml.safe_load(RunDir(run_dir).config.read_text()) or {})
     except (OSError, yaml.YAMLError):
         return []
     new = _flatten(config_to_dict(cfg))
@@ -203,6 +204,6 @@ def _record(out: Path, result: dict) -> None:
     """Make sure a failed run has an error.txt, even when its worker died before writing one."""
     if result.get("status") != "failed":
         return
-    err = Path(result.get("run_dir") or out / result["name"]) / "error.txt"
+    err = RunDir(result.get("run_dir") or out / result["name"]).error
     if not err.exists():
         write_text(err, (result.get("error") or "unknown error") + "\n")

@@ -17,10 +17,11 @@ import traceback
 from pathlib import Path
 from typing import Callable
 
+from inrslam.io.rundir import RunDir
+
 RUN_FN_ENV = "INRSLAM_BENCH_RUN_FN"
 THREADS_ENV = "INRSLAM_BENCH_THREADS"
 DEFAULT_RUN_FN = "inrslam.bench.worker:slam_run"
-CHECKPOINT = "checkpoints/latest.pt"
 
 
 def read_json(path: Path) -> dict | None:
@@ -32,16 +33,13 @@ def read_json(path: Path) -> dict | None:
 
 
 def is_complete(run_dir: str | os.PathLike) -> bool:
-    """True when `run_info.json` says status complete and `metrics.json` exists."""
-    run_dir = Path(run_dir)
-    info = read_json(run_dir / "run_info.json")
-    return bool(info) and info.get("status") == "complete" and (run_dir / "metrics.json").is_file()
+    """True when `run_info.json` says status complete and `metrics.json` is readable (`RunDir.is_complete`)."""
+    return RunDir(run_dir).is_complete()
 
 
 def has_checkpoint(run_dir: str | os.PathLike) -> bool:
     """True when a partial run can be resumed (config.yaml + checkpoints/latest.pt)."""
-    run_dir = Path(run_dir)
-    return (run_dir / CHECKPOINT).is_file() and (run_dir / "config.yaml").is_file()
+    return RunDir(run_dir).has_checkpoint()
 
 
 def resolve_run_fn(run_fn: str | Callable | None = None) -> Callable:
@@ -105,8 +103,6 @@ def _restore_thread_state(state: dict) -> None:
 
 def slam_run(run: dict, run_dir: Path) -> dict:
     """Default run function: resume a checkpointed partial run, else start it over (overwrite)."""
-    import dataclasses
-
     from inrslam.bench.spec import RunSpec, resolve_config
     from inrslam import runner as slam
 
@@ -114,9 +110,9 @@ def slam_run(run: dict, run_dir: Path) -> dict:
         slam.resume_slam(run_dir, progress=None)  # at the thread count its run_info.json records
         return {"resumed": True}
     cfg = resolve_config(RunSpec.from_dict(run))
-    if not cfg.threads and os.environ.get(THREADS_ENV):  # the executor's per-job share of the cores
-        cfg = dataclasses.replace(cfg, threads=int(os.environ[THREADS_ENV]))
-    slam.run_slam(cfg, run_dir, progress=None, overwrite=True)
+    # the executor's per-job share of the cores, unless the run's config sets its own count
+    threads = int(os.environ[THREADS_ENV]) if not cfg.threads and os.environ.get(THREADS_ENV) else None
+    slam.run_slam(cfg, run_dir, progress=None, overwrite=True, threads=threads)
     return {"resumed": False}
 
 
@@ -128,6 +124,7 @@ def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | N
     from inrslam.io.atomic import write_json, write_text
 
     run_dir = Path(out_dir) / run["name"]
+    rd = RunDir(run_dir)
     result = {"name": run["name"], "run_dir": str(run_dir), "error": None, "pid": os.getpid(), "seconds": 0.0}
     if is_complete(run_dir):
         return {**result, "status": "skipped"}
@@ -135,21 +132,21 @@ def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | N
     saved = _thread_state()  # in-process runs give the caller its thread counts and environment back
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "error.txt").unlink(missing_ok=True)
-        write_json(run_dir / "bench.json", run)
+        rd.error.unlink(missing_ok=True)
+        write_json(rd.bench, run)
         set_threads(threads or os.cpu_count() or 1)
         extra = resolve_run_fn(run_fn)(run, run_dir)
         if not is_complete(run_dir):
-            info = read_json(run_dir / "run_info.json") or {}
+            info = rd.read_run_info() or {}
             raise RuntimeError(f"the run function returned but {run_dir} is not complete "
                                f"(run_info status {info.get('status')!r}, metrics.json "
-                               f"{'present' if (run_dir / 'metrics.json').is_file() else 'missing'})")
+                               f"{'present' if rd.metrics.is_file() else 'missing'})")
         result.update(extra if isinstance(extra, dict) else {})
         result["status"] = "complete"
     except BaseException as e:  # noqa: BLE001 - a sweep records every failure, including KeyboardInterrupt in a worker
         tb = traceback.format_exc()
         try:
-            write_text(run_dir / "error.txt", tb)
+            write_text(rd.error, tb)
         except OSError:
             pass
         result.update(status="failed", error=f"{type(e).__name__}: {e}".splitlines()[0][:500])

@@ -21,8 +21,9 @@ from inrslam.data.frame import Intrinsics
 from inrslam.errors import DataError
 from inrslam.eval.config import Alignment, EvalConfig
 from inrslam.eval.mesh import cull_mesh, mesh_metrics
-from inrslam.eval.trajectory import associate, ate, rpe
+from inrslam.eval.trajectory import associate, ate, drift_per_100, rpe
 from inrslam.io.atomic import atomic_path, write_json
+from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import read_tum
 
 PathLike = Union[str, os.PathLike]
@@ -37,6 +38,7 @@ RESULT_KEYS = (
     "rpe_rot_deg",
     "ate_keyframes_rmse_m",
     "ate_relative_rmse_m",
+    "drift_m_per_100",
     "acc_m",
     "comp_m",
     "comp_ratio",
@@ -103,10 +105,12 @@ def trajectory_metrics(
 
     Keyframe ATE (`ate_keyframes_rmse_m`) restricts both arrays to `keyframe_rows` and aligns that subset on its
     own. Returns ate_rmse_m, ate_mean_m, ate_median_m, ate_std_m, ate_min_m, ate_max_m, ate_n_used, ate_n_excluded,
-    rpe_trans_m, rpe_rot_deg, rpe_n_pairs, ate_keyframes_rmse_m, ate_keyframes_n_used.
+    rpe_trans_m, rpe_rot_deg, rpe_n_pairs, drift_m_per_100, unaligned_final_m (`drift_per_100`),
+    ate_keyframes_rmse_m, ate_keyframes_n_used.
     """
     a = ate(est_c2w, gt_c2w, align=align)
     r = rpe(est_c2w, gt_c2w, delta=rpe_delta)
+    d = drift_per_100(est_c2w, gt_c2w)
     out = {
         "ate_rmse_m": _f(a["rmse"]),
         "ate_mean_m": _f(a["mean"]),
@@ -120,6 +124,8 @@ def trajectory_metrics(
         "rpe_trans_m": _f(r["trans_rmse"]),
         "rpe_rot_deg": _f(r["rot_rmse"]),
         "rpe_n_pairs": r["n_pairs"],
+        "drift_m_per_100": _f(d["drift_m_per_100"]),
+        "unaligned_final_m": _f(d["final_m"]),
         "ate_keyframes_rmse_m": None,
         "ate_keyframes_n_used": 0,
     }
@@ -146,8 +152,8 @@ def _associated_gt(ts_est: np.ndarray, ts_gt: np.ndarray, gt: np.ndarray, max_di
 def _keyframe_rows(run_dir: Path, run_info: dict, ts_est: np.ndarray, max_diff: float, notes: list) -> Optional[np.ndarray]:
     """Rows of trajectory.txt that are keyframes (frame indices -> rows via run_info timestamps)."""
     kf = run_info.get("keyframes")
-    if kf is None and (run_dir / "keyframes.json").is_file():
-        kf = _read_json(run_dir / "keyframes.json")
+    if kf is None and RunDir(run_dir).keyframes.is_file():
+        kf = _read_json(RunDir(run_dir).keyframes)
         if isinstance(kf, dict):
             kf = kf.get("keyframes")
     if kf is None:
@@ -195,11 +201,12 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
     if not run_dir.is_dir():
         raise DataError(f"{run_dir}: run directory not found")
     notes: list[str] = []
-    info_path = run_dir / "run_info.json"
+    rd = RunDir(run_dir)
+    info_path = rd.run_info
     run_info = _read_json(info_path) if info_path.is_file() else {}
     if not info_path.is_file():
         notes.append("run_info.json missing: no keyframes, intrinsics or GT mesh")
-    metrics_path = run_dir / "metrics.json"
+    metrics_path = rd.metrics
     existing = _read_json(metrics_path) if metrics_path.is_file() else {}
     if not isinstance(existing, dict):
         raise DataError(f"{metrics_path}: expected a JSON object")
@@ -207,7 +214,7 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
     res: dict[str, Any] = {k: None for k in RESULT_KEYS}
 
     # --- trajectory
-    est_path, gt_path = run_dir / "trajectory.txt", run_dir / "trajectory_gt.txt"
+    est_path, gt_path = rd.trajectory, rd.trajectory_gt
     gt_cams = None
     if gt_path.is_file():
         ts_gt, gt = read_tum(gt_path)
@@ -221,7 +228,7 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
             res.update(trajectory_metrics(est, gt_full, rows, cfg.align, cfg.rpe_delta))
             if res["ate_n_used"] == 0:
                 notes.append(f"ATE: no estimated timestamp within {cfg.max_time_diff} s of a GT timestamp")
-            rel_path = run_dir / "trajectory_relative.txt"
+            rel_path = rd.trajectory_relative
             if rel_path.is_file():  # spec §7.6: non-keyframes carried along by their keyframe's refinement
                 ts_rel, est_rel = read_tum(rel_path)
                 rel_gt = _associated_gt(ts_rel, ts_gt, gt, cfg.max_time_diff)
@@ -233,7 +240,7 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
         notes.append("trajectory.txt missing: no ATE/RPE")
 
     # --- mesh
-    rec_path = run_dir / "mesh.ply"
+    rec_path = rd.mesh
     gt_mesh_path = _resolve(run_dir, run_info.get("gt_mesh"))
     mesh_eval: dict[str, Any] = {}
     if not cfg.mesh_metrics:
@@ -259,7 +266,7 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
     out["mesh_eval"] = mesh_eval
     out["eval_notes"] = notes
     if write:
-        write_json(metrics_path, out)
+        rd.write_metrics(out)
     return out
 
 
@@ -384,6 +391,8 @@ _DISPLAY = {
     "ate_keyframes_rmse_m": ("ATE RMSE (keyframes)", "cm", 100.0),
     "ate_relative_rmse_m": ("ATE RMSE (relative traj.)", "cm", 100.0),
     "rpe_trans_m": ("RPE trans. RMSE", "cm", 100.0),
+    "drift_m_per_100": ("Drift (unaligned error growth)", "cm/100 fr", 100.0),
+    "unaligned_final_m": ("Unaligned error, last frame", "cm", 100.0),
     "rpe_rot_deg": ("RPE rot. RMSE", "deg", 1.0),
     "acc_m": ("Accuracy", "cm", 100.0),
     "comp_m": ("Completion", "cm", 100.0),

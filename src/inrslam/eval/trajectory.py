@@ -223,6 +223,28 @@ def ate(est_c2w: np.ndarray, gt_c2w: np.ndarray, align: Alignment | str = "se3")
     return out
 
 
+def drift_per_100(est_c2w: np.ndarray, gt_c2w: np.ndarray) -> dict:
+    """Growth of the *unaligned* position error: both trajectories expressed relative to their first usable frame,
+
+        e_i = | p_i - q_i |  with  p = (est_0^-1 est_i).t,  q = (gt_0^-1 gt_i).t,
+        drift = 100 * (sum_i k_i e_i) / (sum_i k_i^2)   metres per 100 frames (k_i = frame offset from the first),
+
+    the least-squares slope through the origin (e_0 = 0 by construction). Example: e_k = 0.001 k gives 0.1 m per
+    100 frames. Returns {"drift_m_per_100": float (NaN with < 2 frames), "final_m": e of the last usable frame}.
+    """
+    est = _check_poses("drift est_c2w", est_c2w)
+    gt = _check_poses("drift gt_c2w", gt_c2w)
+    used = np.nonzero(_finite_rows(est) & _finite_rows(gt))[0]
+    if used.size < 2:
+        return {"drift_m_per_100": float("nan"), "final_m": float("nan")}
+    i0 = used[0]
+    p = (np.linalg.inv(est[i0]) @ est[used])[:, :3, 3]
+    q = (np.linalg.inv(gt[i0]) @ gt[used])[:, :3, 3]
+    e = np.linalg.norm(p - q, axis=1)
+    k = (used - i0).astype(np.float64)
+    return {"drift_m_per_100": float(100.0 * (k @ e) / (k @ k)), "final_m": float(e[-1])}
+
+
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
     """(..., 3, 3) rotation -> (...,) angle in degrees, θ = atan2(|vee(R − Rᵀ)| / 2, (tr R − 1) / 2).
 

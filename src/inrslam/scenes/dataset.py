@@ -11,7 +11,7 @@ from PIL import Image
 
 from inrslam.data.frame import Frame, Intrinsics
 from inrslam.errors import DataError
-from inrslam.scenes.config import SceneConfig
+from inrslam.scenes.config import DEFAULT_SENSOR, SceneConfig
 from inrslam.scenes.sensor import apply_sensor
 
 FPS = 30.0
@@ -42,8 +42,9 @@ class BuiltinDataset:
         self.scene: str = meta["scene"]
         self.depth_scale = float(meta["depth_scale"])
         self.seed = int(cfg.seed)
-        self.depth_noise = float(cfg.depth_noise)
-        self.missing_depth = float(cfg.missing_depth)
+        noise, holes = DEFAULT_SENSOR.get(self.scene, (0.0, 0.0))
+        self.depth_noise = float(noise if cfg.depth_noise is None else cfg.depth_noise)
+        self.missing_depth = float(holes if cfg.missing_depth is None else cfg.missing_depth)
         self.intrinsics = Intrinsics(float(intr["fx"]), float(intr["fy"]), float(intr["cx"]), float(intr["cy"]),
                                      int(intr["width"]), int(intr["height"]))
         self.bounds = np.asarray(_read_json(self.root / "bounds.json")["bounds"], dtype=np.float64)

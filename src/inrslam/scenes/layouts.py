@@ -33,7 +33,7 @@ class SceneLayout:
 SceneBuilder = Callable[[int], SceneLayout]
 SCENES: Registry[SceneBuilder] = Registry("scene")
 
-DEFAULT_FRAMES = {"room": 200, "cluttered": 300, "thin": 200}
+DEFAULT_FRAMES = {"room": 200, "cluttered": 300, "thin": 200, "handheld": 200}
 """Sequence length of each scene when `SceneConfig.frames` is 0."""
 
 
@@ -173,11 +173,24 @@ def _box_stack(b: GeometryBuilder, pl: fur.Placer, rng: np.random.Generator, mat
 @SCENES.register("room", help="small furnished room 4 x 3.5 x 2.6 m: table, chairs, shelf, boxes, posters (default)")
 def build_room(seed: int) -> SceneLayout:
     """A ~4 x 3.5 x 2.6 m room with a table and chairs in the middle, a bookshelf, a cabinet, boxes, plant, lamp."""
-    rng = scene_rng(seed, "room")
+    return _furnished_room(seed, "room", dict(yaw_amp=0.4, yaw_period=6.0))
+
+
+@SCENES.register("handheld", help="room-like, hand-held motion: 3-5 cm / ~2.6 deg per frame, wall views, depth noise "
+                                  "(1 % of depth at 2.5 m), 5 % holes")
+def build_handheld(seed: int) -> SceneLayout:
+    """A furnished room like `room`, with a faster, swinging camera: ~3.5 cm per frame on average (+-50 %), yaw
+    swinging +-80 degrees around the inward heading so that some views face a wall; sensor noise by default."""
+    return _furnished_room(seed, "handheld", dict(speed=0.035, speed_var=0.5, speed_period=60.0, yaw_amp=0.9,
+                                                 yaw_period=6.0, pitch_amp=0.15, roll_amp=0.05))
+
+
+def _furnished_room(seed: int, name: str, path_kw: dict) -> SceneLayout:
+    rng = scene_rng(seed, name)
     room = _room_box(rng, (4.0, 3.5, 2.6), (0.1, 0.1, 0.04))
     centre = rng.uniform(-0.08, 0.08, 2)
     path = random_loop(rng, centre, (rng.uniform(0.95, 1.05), rng.uniform(0.68, 0.76)), (1.4, 1.75), (*centre, 0.8),
-                       yaw_amp=0.4, yaw_period=6.0)
+                       **path_kw)
     b = GeometryBuilder(room)
     b.add_room(floor=Material("gravel", tint=(0.56, 0.46, 0.36), contrast=1.2, tile=(0.8, 0.8)),
                ceiling=Material("gravel", tint=(0.92, 0.92, 0.9), contrast=0.15, tile=(1.5, 1.5)),
@@ -220,7 +233,7 @@ def build_room(seed: int) -> SceneLayout:
     if c is not None:
         fur.floor_lamp(b, c, 1.6, metal, _SHADE)
     _place_posters(b, pl, rng, int(rng.integers(2, 4)), 1.55, (0.6, 0.8))
-    return SceneLayout("room", b.build(), path, default_frames=DEFAULT_FRAMES["room"])
+    return SceneLayout(name, b.build(), path, default_frames=DEFAULT_FRAMES[name])
 
 
 @SCENES.register("cluttered", help="large cluttered room 7 x 5 x 3 m with many objects of varied sizes")

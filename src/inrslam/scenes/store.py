@@ -78,9 +78,9 @@ def render_params(name: str, cfg: SceneConfig) -> dict:
             raise ConfigError(f"data.builtin.{key}: expected >= 0 (0 = scene default), got {getattr(cfg, key)}")
     if cfg.motion_scale <= 0:
         raise ConfigError(f"data.builtin.motion_scale: expected > 0, got {cfg.motion_scale}")
-    if not 0.0 <= cfg.missing_depth < 1.0:
+    if cfg.missing_depth is not None and not 0.0 <= cfg.missing_depth < 1.0:
         raise ConfigError(f"data.builtin.missing_depth: expected a fraction in [0, 1), got {cfg.missing_depth}")
-    if cfg.depth_noise < 0:
+    if cfg.depth_noise is not None and cfg.depth_noise < 0:
         raise ConfigError(f"data.builtin.depth_noise: expected >= 0 metres, got {cfg.depth_noise}")
     frames = cfg.frames or DEFAULT_FRAMES[name]
     width = cfg.width or DEFAULT_WIDTH

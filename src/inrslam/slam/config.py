@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 
 class PoseParam(str, enum.Enum):
@@ -11,6 +11,60 @@ class PoseParam(str, enum.Enum):
 
     QUAT = "quat"  # unnormalised quaternion + translation (the paper)
     SE3 = "se3"  # left-multiplied se(3) twist around the initial pose (smooth at zero)
+
+
+class PoseInit(str, enum.Enum):
+    """Where tracking starts from."""
+
+    CONST_VELOCITY = "const_velocity"  # constant-velocity prediction (the paper)
+    GICP = "gicp"  # GICP of the frame's depth onto the previous frame's, checked; constant velocity when it fails
+
+
+class GicpTarget(str, enum.Enum):
+    """What a frame's depth is registered onto."""
+
+    PREVIOUS = "previous"  # the previous frame (frame-to-frame odometry)
+    KEYFRAME = "keyframe"  # the last GICP keyframe, renewed on motion / overlap loss (drift per keyframe, not frame)
+
+
+@dataclass
+class GicpConfig:
+    """GICP initialiser settings (`slam.gicp.*`)."""
+
+    downsample: float = 0.02  # voxel size of the point clouds, metres
+    max_corr: float = 0.1  # maximum correspondence distance, metres
+    neighbors: int = 10  # neighbours for the per-point covariances
+    max_iterations: int = 30  # Gauss-Newton iterations
+    eps_trans: float = 1e-5  # stop when an update moves less than this, metres ...
+    eps_rot: float = 1e-5  # ... and rotates less than this, radians (small_gicp's default, 1 mm / 0.1 deg, stops early)
+    pixel_stride: int = 2  # back-project every N-th pixel in u and v
+    max_depth: float = 6.0  # ignore depth beyond this, metres
+    min_fitness: float = 0.6  # minimum inlier fraction of the source points
+    degeneracy_ratio: float = 0.005  # minimum lambda_min / lambda_max of the rotation and translation Hessian blocks
+    max_step: float = 0.3  # metres; a relative motion larger than this from the prediction is rejected
+    threads: int = 1  # small_gicp threads (1 keeps results independent of the thread count)
+    target: GicpTarget = GicpTarget.PREVIOUS  # register onto the previous frame, or onto a GICP keyframe
+    kf_dist: float = 0.15  # target = keyframe: a new GICP keyframe after this much motion from it, metres ...
+    kf_angle: float = 10.0  # ... or this much rotation, degrees ...
+    kf_fitness: float = 0.85  # ... or when the inlier fraction drops below this
+
+
+
+@dataclass
+class SdfTrackConfig:
+    """Point-to-surface tracking against the map (`slam.sdf_track.*`): Gauss-Newton on the SDF of the frame's
+    back-projected depth points, r_i = SDF(T p_i) (metres), robust (Huber) weights, stop on a small step."""
+
+    iters: int = 0  # maximum Gauss-Newton iterations per frame (0 = off)
+    only_on_init_failure: bool = False  # run only when the geometric initialiser failed its checks (wall views)
+    points: int = 8192  # depth points per frame (drawn once per frame)
+    huber: float = 0.01  # Huber threshold, metres
+    band: float = 0.5  # use points with |SDF| < band x truncation (where the field was trained as a distance)
+    min_points: int = 200  # fewer usable points: skip (keep the pose it was given) and log it
+    tol_trans: float = 2e-5  # stop when the step is below this, metres ...
+    tol_rot: float = 2e-5  # ... and below this, radians
+    damping: float = 1e-4  # Levenberg-Marquardt damping, relative to the Hessian's mean diagonal
+    max_step: float = 0.1  # metres; a total correction larger than this is rejected (pose kept)
 
 
 @dataclass
@@ -22,11 +76,15 @@ class SlamConfig:
     track_iters: int = 20  # pose iterations per frame
     track_pixels: int = 1024  # rays per tracking iteration (drawn once per frame)
     track_lr: float = 1e-3  # Adam learning rate of the pose
+    track_only_on_init_failure: bool = False  # rendered tracking only when the geometric initialiser failed
     track_edge: int = 20  # pixels ignored at the image border during tracking
     keep_best_pose: bool = True  # keep the lowest-loss evaluated pose (False: the last evaluated pose)
     eval_final_pose: bool = True  # also evaluate the pose after the final update (the original never did)
     pose_param: PoseParam = PoseParam.QUAT  # pose parameterisation for tracking and BA
     const_velocity: bool = True  # constant-velocity motion prediction
+    init: PoseInit = PoseInit.CONST_VELOCITY  # tracking's starting pose: prediction, or GICP onto the previous frame
+    gicp: GicpConfig = field(default_factory=GicpConfig)  # settings of init = gicp
+    sdf_track: SdfTrackConfig = field(default_factory=SdfTrackConfig)  # point-to-surface refinement (before Adam)
     map_every: int = 5  # mapping + keyframe every N frames
     map_iters: int = 20  # mapping iterations per call
     map_pixels: int = 2048  # rays per mapping iteration drawn from the keyframe store

@@ -21,15 +21,22 @@ from inrslam.errors import ConfigError
 from inrslam.geometry.camera import pixel_directions
 from inrslam.rendering.sampling import sample_pixels
 from inrslam.io.atomic import append_jsonl, atomic_path, write_json, write_text
+from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import write_tum
 from inrslam.slam.keyframes import KeyframeStore
 from inrslam.slam.mapping import initialise, map_frame
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import SceneModel
+from inrslam.slam.config import GicpTarget, PoseInit
 from inrslam.slam.poses import constant_velocity, relative_trajectory
+from inrslam.slam.registration import prepare_depth, register
+from inrslam.slam.sdf_tracking import align_to_sdf
 from inrslam.slam.tracking import track_frame
 
-CHECKPOINT = "checkpoints/latest.pt"
+def _far(T: np.ndarray, dist: float, angle_deg: float) -> bool:
+    """Whether a relative pose (4, 4) moves more than `dist` metres or rotates more than `angle_deg` degrees."""
+    cos = np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)
+    return bool(np.linalg.norm(T[:3, 3]) > dist or np.degrees(np.arccos(cos)) > angle_deg)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -78,6 +85,7 @@ class SlamSystem:
         self.threads = threads
         self.dataset = dataset
         self.out = Path(out_dir)
+        self.rd = RunDir(self.out)
         self.progress = progress  # callable(frame_idx, n_frames, info: dict) or None
         self.device = resolve_device(cfg.device)
         torch.manual_seed(cfg.seed)
@@ -106,10 +114,12 @@ class SlamSystem:
         self.proc_depth_l1: list[float] = []
         self.events: list[dict] = []
         self.tb = None
+        self._target_cloud = None  # (frame index, PreparedCloud) of the GICP target (not checkpointed: rebuilt)
+        self.gicp_kf = 0  # GICP keyframe (slam.gicp.target = keyframe)
 
     # -- bookkeeping --------------------------------------------------------------------------------------
     def _log(self, record: dict) -> None:
-        append_jsonl(self.out / "log.jsonl", record)
+        append_jsonl(self.rd.log, record)
         if self.tb is not None:
             step = record.get("frame", 0)
             for k, v in record.items():
@@ -125,7 +135,7 @@ class SlamSystem:
             from torch.utils.tensorboard import SummaryWriter
         except Exception:  # tensorboard not installed: optional
             return
-        self.tb = SummaryWriter(str(self.out / "tensorboard"), purge_step=self.next_frame if resume else None)
+        self.tb = SummaryWriter(str(self.rd.tensorboard), purge_step=self.next_frame if resume else None)
 
     def _keyframe_fraction(self) -> float:
         return 0.005 if self.cfg.slam.keyframe_variant else self.cfg.slam.keyframe_fraction
@@ -152,11 +162,11 @@ class SlamSystem:
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
         }
-        write_json(self.out / "run_info.json", info)
+        write_json(self.rd.run_info, info)
 
     # -- checkpoint -----------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        log = self.out / "log.jsonl"
+        log = self.rd.log
         return {
             "next_frame": self.next_frame,
             "model": self.model.state_dict(),
@@ -169,17 +179,18 @@ class SlamSystem:
             "generator": self.generator.get_state(),
             "track_ms": self.track_ms, "map_ms": self.map_ms, "init_ms": self.init_ms,
             "proc_psnr": self.proc_psnr, "proc_depth_l1": self.proc_depth_l1, "events": self.events,
+            "gicp_kf": self.gicp_kf,
             "log_bytes": log.stat().st_size if log.exists() else 0,
             "wall_s": self.wall_s_before + time.perf_counter() - self._t_start,
             "peak_mb": self._peak_memory_mb(),
         }
 
     def save_checkpoint(self) -> None:
-        with atomic_path(self.out / CHECKPOINT) as tmp:
+        with atomic_path(self.rd.checkpoint) as tmp:
             torch.save(self.state_dict(), tmp)
 
     def load_checkpoint(self) -> None:
-        path = self.out / CHECKPOINT
+        path = self.rd.checkpoint
         if not path.is_file():
             raise ConfigError(f"{path}: no checkpoint to resume from")
         st = torch.load(path, map_location="cpu", weights_only=False)
@@ -195,9 +206,10 @@ class SlamSystem:
         self.track_ms, self.map_ms, self.init_ms = st["track_ms"], st["map_ms"], st["init_ms"]
         self.proc_psnr, self.proc_depth_l1, self.events = st["proc_psnr"], st["proc_depth_l1"], st["events"]
         self.next_frame = st["next_frame"]
+        self.gicp_kf = int(st.get("gicp_kf", 0))
         self.wall_s_before = st["wall_s"]
         self.peak_mb_before = st["peak_mb"]
-        log = self.out / "log.jsonl"
+        log = self.rd.log
         if log.exists():  # drop records written after the checkpoint, so the resumed log equals an uninterrupted one
             with open(log, "rb+") as f:
                 f.truncate(st["log_bytes"])
@@ -209,8 +221,8 @@ class SlamSystem:
         if resume:
             self.load_checkpoint()
         else:
-            write_text(self.out / "config.yaml", dump_config(self.cfg))
-            (self.out / "log.jsonl").write_text("")
+            write_text(self.rd.config, dump_config(self.cfg))
+            self.rd.log.write_text("")
         self.write_run_info("running")
         self._open_tensorboard(resume)
         self._t_start = time.perf_counter()
@@ -220,7 +232,7 @@ class SlamSystem:
             self._process(i, frame)
             self.next_frame = i + 1
             if self.cfg.slam.mesh_every and (i + 1) % self.cfg.slam.mesh_every == 0:
-                self._write_mesh(self.out / "meshes" / f"mesh_{i:06d}.ply")
+                self._write_mesh(self.rd.mesh_at(i))
             if ck_every and (i + 1) % ck_every == 0 and i + 1 < self.n_frames:
                 self.save_checkpoint()
             if self.progress:
@@ -260,26 +272,75 @@ class SlamSystem:
         prev = self.est[i - 1]
         pred = constant_velocity(prev, self.est[i - 2] if (i >= 2 and cfg.const_velocity) else None)
         t0 = time.perf_counter()
+        extra: dict = {}
+        if cfg.init is PoseInit.GICP:
+            pred = self._gicp_init(i, frame, pred, extra)
         if n_valid_depth == 0:
             # no depth: colour-only tracking is ill-posed at the paper's settings; keep the prediction
             c2w, loss, fallback, iters = pred, float("nan"), "no_valid_depth", 0
         else:
-            dirs, rgb, depth = ft.sample(cfg.track_pixels, self.generator, edge=cfg.track_edge)
-            res = track_frame(self.model, pred, dirs, rgb, depth, cfg, self.generator, cfg.max_pose_jump)
-            c2w, loss, fallback, iters = res.c2w, res.best_loss, res.fallback, res.iters
+            if cfg.sdf_track.iters > 0 and (not cfg.sdf_track.only_on_init_failure or "init_fallback" in extra):
+                pred = self._sdf_refine(ft, pred, extra)
+            if cfg.track_iters > 0 and (not cfg.track_only_on_init_failure or "init_fallback" in extra):
+                dirs, rgb, depth = ft.sample(cfg.track_pixels, self.generator, edge=cfg.track_edge)
+                res = track_frame(self.model, pred, dirs, rgb, depth, cfg, self.generator, cfg.max_pose_jump)
+                c2w, loss, fallback, iters = res.c2w, res.best_loss, res.fallback, res.iters
+            else:  # geometric tracking only
+                c2w, loss, fallback, iters = pred, float("nan"), None, 0
         track_ms = (time.perf_counter() - t0) * 1e3
         self.track_ms.append(track_ms)
         self.est[i] = c2w
         kf = self.store.frame_ids[-1]
         self.rel[i] = torch.linalg.inv(self.est[kf]) @ c2w
         self.rel_kf[i] = kf
-        rec = {"type": "track", "frame": i, "loss": loss, "track_ms": track_ms, "iters": iters}
+        fallback = ",".join(f for f in (extra.pop("init_fallback", None), extra.pop("sdf_fallback", None), fallback)
+                            if f)
+        rec = {"type": "track", "frame": i, "loss": loss, "track_ms": track_ms, "iters": iters, **extra}
         if fallback:
             rec["fallback"] = fallback
             self.events.append({"frame": i, "event": fallback})
         self._log(rec)
         if i % cfg.map_every == 0:
             self._map(i, ft)
+
+    def _gicp_init(self, i: int, frame: Frame, pred: torch.Tensor, rec: dict) -> torch.Tensor:
+        """GICP of frame i's depth onto its target (frame i-1, or the GICP keyframe) from the prediction; the
+        prediction when a check fails (the reason goes to `rec` as init_fallback). The target's prepared cloud is
+        kept in memory and rebuilt from the dataset after a resume."""
+        g = self.cfg.slam.gicp
+        cur = prepare_depth(frame.depth, frame.intrinsics, g)
+        t_idx = i - 1 if g.target is GicpTarget.PREVIOUS else self.gicp_kf
+        if self._target_cloud is None or self._target_cloud[0] != t_idx:
+            t_frame = self.dataset[t_idx]
+            self._target_cloud = (t_idx, prepare_depth(t_frame.depth, t_frame.intrinsics, g))
+        target = self._target_cloud[1]
+        base = self.est[t_idx].double().cpu().numpy()
+        rel_pred = np.linalg.inv(base) @ pred.double().cpu().numpy()
+        reg = register(target, cur, rel_pred, g)
+        rec.update(gicp_fitness=round(reg.fitness, 4), gicp_degeneracy=round(reg.degeneracy, 4), gicp_target=t_idx)
+        if g.target is GicpTarget.PREVIOUS:
+            self._target_cloud = (i, cur)
+        elif not reg.ok or _far(reg.T_target_source, g.kf_dist, g.kf_angle) or reg.fitness < g.kf_fitness:
+            self.gicp_kf = i  # this frame becomes the target of the next ones (after its tracking)
+            self._target_cloud = (i, cur)
+        if not reg.ok:
+            rec["init_fallback"] = f"gicp_{reg.reason}"
+            return pred
+        return torch.as_tensor(base @ reg.T_target_source, dtype=pred.dtype, device=pred.device)
+
+    def _sdf_refine(self, ft: "FrameTensors", pred: torch.Tensor, rec: dict) -> torch.Tensor:
+        """Point-to-surface Gauss-Newton against the map from `pred` (slam.sdf_track)."""
+        sc = self.cfg.slam.sdf_track
+        valid = torch.nonzero(ft.depth > 0).squeeze(1)
+        if valid.numel() > sc.points:
+            valid = valid[torch.randperm(valid.numel(), generator=self.generator)[: sc.points].to(valid.device)]
+        dirs, _, depth = ft.rays(valid)
+        res = align_to_sdf(self.model.field, pred, dirs * depth[:, None], self.model.truncation, sc)
+        rec.update(sdf_iters=res.iters, sdf_points=res.n_used, sdf_rms_mm=round(res.rms * 1e3, 3)
+                   if math.isfinite(res.rms) else None)
+        if res.fallback:
+            rec["sdf_fallback"] = res.fallback
+        return res.c2w
 
     def _map(self, i: int, ft: FrameTensors) -> None:
         cfg = self.cfg.slam
@@ -338,15 +399,15 @@ class SlamSystem:
         from inrslam.fields import model_size_mb
 
         est = self.est.double().cpu().numpy()
-        write_tum(self.out / "trajectory.txt", self.timestamps, est, header="inrslam estimated c2w (OpenCV axes)")
-        write_tum(self.out / "trajectory_relative.txt", self.timestamps,
+        write_tum(self.rd.trajectory, self.timestamps, est, header="inrslam estimated c2w (OpenCV axes)")
+        write_tum(self.rd.trajectory_relative, self.timestamps,
                   relative_trajectory(est, self.rel.double().cpu().numpy(), self.rel_kf, self.store.frame_ids),
                   header="inrslam estimated c2w, non-keyframes relative to their refined keyframe (spec 7.6)")
         if np.isfinite(self.gt).all(axis=(1, 2)).any():
-            write_tum(self.out / "trajectory_gt.txt", self.timestamps, self.gt, header="ground-truth c2w (OpenCV axes)")
-        write_json(self.out / "keyframes.json", {"keyframes": list(self.store.frame_ids)})
+            write_tum(self.rd.trajectory_gt, self.timestamps, self.gt, header="ground-truth c2w (OpenCV axes)")
+        write_json(self.rd.keyframes, {"keyframes": list(self.store.frame_ids)})
         if self.cfg.mesh.enabled:
-            self._write_mesh(self.out / "mesh.ply")
+            self._write_mesh(self.rd.mesh)
         metrics = {
             "frames": self.n_frames,
             "track_ms_per_frame": float(np.mean(self.track_ms)) if self.track_ms else None,
@@ -362,5 +423,5 @@ class SlamSystem:
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
         }
-        write_json(self.out / "metrics.json", metrics)
+        self.rd.write_metrics(metrics)
         self.write_run_info("slam_done")

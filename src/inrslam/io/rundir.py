@@ -1,0 +1,124 @@
+"""The run-directory contract: every file and folder a run writes, in one place (layout in docs/design.md).
+
+Writers and readers (the SLAM system, the runner, evaluation, the sweep worker, the leaderboard, the plots, the CLI)
+name paths only through `RunDir`, so the layout is defined once. Writes are atomic (`inrslam.io.atomic`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+from inrslam.io.atomic import write_json
+
+
+class RunDir:
+    """A run directory at `root`.
+
+    Files: config.yaml, run_info.json, log.jsonl, trajectory.txt, trajectory_gt.txt, trajectory_relative.txt,
+    keyframes.json, mesh.ply, metrics.json, checkpoints/latest.pt; sweep runs add bench.json and error.txt.
+    Folders: meshes/ (intermediate meshes), tensorboard/.
+    """
+
+    FILES = {
+        "config": "config.yaml",
+        "run_info": "run_info.json",
+        "log": "log.jsonl",
+        "trajectory": "trajectory.txt",
+        "trajectory_gt": "trajectory_gt.txt",
+        "trajectory_relative": "trajectory_relative.txt",
+        "keyframes": "keyframes.json",
+        "mesh": "mesh.ply",
+        "metrics": "metrics.json",
+        "checkpoint": "checkpoints/latest.pt",
+    }
+    SWEEP_FILES = {"bench": "bench.json", "error": "error.txt"}  # written by the sweep worker around a run
+    DIRS = {"meshes": "meshes", "tensorboard": "tensorboard", "checkpoints": "checkpoints"}
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+
+    def __repr__(self) -> str:
+        return f"RunDir({str(self.root)!r})"
+
+    def __fspath__(self) -> str:
+        return str(self.root)
+
+    # -- paths ---------------------------------------------------------------------------------------------------
+    def path(self, key: str) -> Path:
+        """Path of a file (`FILES` key) or folder (`DIRS` key)."""
+        for table in (self.FILES, self.SWEEP_FILES, self.DIRS):
+            if key in table:
+                return self.root / table[key]
+        raise KeyError(f"no run-directory entry {key!r} (files: {', '.join(self.FILES)}, {', '.join(self.SWEEP_FILES)}; "
+                       f"folders: {', '.join(self.DIRS)})")
+
+    config = property(lambda self: self.path("config"))
+    run_info = property(lambda self: self.path("run_info"))
+    log = property(lambda self: self.path("log"))
+    trajectory = property(lambda self: self.path("trajectory"))
+    trajectory_gt = property(lambda self: self.path("trajectory_gt"))
+    trajectory_relative = property(lambda self: self.path("trajectory_relative"))
+    keyframes = property(lambda self: self.path("keyframes"))
+    mesh = property(lambda self: self.path("mesh"))
+    metrics = property(lambda self: self.path("metrics"))
+    checkpoint = property(lambda self: self.path("checkpoint"))
+    bench = property(lambda self: self.path("bench"))
+    error = property(lambda self: self.path("error"))
+    meshes = property(lambda self: self.path("meshes"))
+    tensorboard = property(lambda self: self.path("tensorboard"))
+
+    def mesh_at(self, frame: int) -> Path:
+        """Intermediate mesh after `frame` (slam.mesh_every)."""
+        return self.meshes / f"mesh_{frame:06d}.ply"
+
+    # -- state -----------------------------------------------------------------------------------------------------
+    def holds_run(self) -> bool:
+        """A run was started here (its resolved config.yaml exists)."""
+        return self.config.is_file()
+
+    def is_complete(self) -> bool:
+        """run_info.json says status complete and metrics.json is a readable JSON object."""
+        info = self.read_run_info()
+        return bool(info) and info.get("status") == "complete" and isinstance(self.read_metrics(), dict)
+
+    def has_checkpoint(self) -> bool:
+        """A partial run can be resumed: config.yaml and checkpoints/latest.pt exist."""
+        return self.checkpoint.is_file() and self.config.is_file()
+
+    def clear(self) -> None:
+        """Remove every file and folder a SLAM run writes (the sweep's bench.json / error.txt and any other file in
+        the folder are left alone)."""
+        for name in self.FILES.values():
+            (self.root / name).unlink(missing_ok=True)
+        for name in self.DIRS.values():
+            shutil.rmtree(self.root / name, ignore_errors=True)
+
+    # -- JSON files --------------------------------------------------------------------------------------------------
+    def read_json(self, key: str) -> Any:
+        """Parsed JSON of a file, or None when missing or unreadable."""
+        try:
+            return json.loads(self.path(key).read_text())
+        except (OSError, ValueError):
+            return None
+
+    def read_metrics(self) -> dict | None:
+        m = self.read_json("metrics")
+        return m if isinstance(m, dict) else None
+
+    def read_run_info(self) -> dict | None:
+        info = self.read_json("run_info")
+        return info if isinstance(info, dict) else None
+
+    def write_metrics(self, metrics: dict) -> None:
+        """Replace metrics.json (atomically)."""
+        write_json(self.metrics, metrics)
+
+    def update_metrics(self, new: dict) -> dict:
+        """Merge `new` into metrics.json (created if missing) and return the merged dict."""
+        merged = {**(self.read_metrics() or {}), **new}
+        self.write_metrics(merged)
+        return merged

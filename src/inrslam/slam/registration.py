@@ -1,0 +1,112 @@
+"""Geometric pose initialiser: GICP between the back-projected depth of two frames (small_gicp, CPU), with a
+fitness and a degeneracy check so that a failed or ill-posed registration is never trusted.
+
+Pure numpy in, numpy out (no file I/O). small_gicp is imported on first use; without it a clear error says how to
+install it.
+
+Degeneracy: GICP minimises sum_i r_i^T C_i^-1 r_i over a pose increment (omega, rho); its Gauss-Newton Hessian H (6x6,
+rotation block first) says how well each direction is constrained. A view of a single plane leaves the two in-plane
+translations and the rotation about the normal free: the translation block H_tt then has two eigenvalues ~0. We call a
+registration degenerate when  lambda_min(H_tt) / lambda_max(H_tt) < degeneracy_ratio  (or the same on H_rr).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from inrslam.errors import ConfigError
+from inrslam.slam.config import GicpConfig
+
+
+@dataclass
+class Registration:
+    """Result of `register`: the relative pose and why it may not be trusted."""
+
+    T_target_source: np.ndarray  # (4, 4) float64: source camera -> target camera
+    ok: bool  # passed every check
+    reason: str | None  # "too_few_points" / "not_converged" / "low_fitness" / "degenerate" / "jump", or None
+    fitness: float  # inlier fraction of the source points, [0, 1]
+    degeneracy: float  # min over the rotation / translation blocks of lambda_min / lambda_max, [0, 1]
+    iterations: int
+
+
+def _small_gicp():
+    try:
+        import small_gicp
+    except ImportError:
+        raise ConfigError("config key 'slam.init': 'gicp' needs the small_gicp package "
+                          "(pip install small_gicp, or pip install -e '.[accurate]')") from None
+    return small_gicp
+
+
+def depth_points(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float, stride: int = 1,
+                 max_depth: float = np.inf) -> np.ndarray:
+    """(H, W) depth in metres -> (N, 3) float64 camera-frame points of the valid pixels (0 < d <= max_depth) on
+    every `stride`-th row and column; OpenCV axes, x = (u - cx) d / fx."""
+    d = np.asarray(depth, dtype=np.float64)[::stride, ::stride]
+    v, u = np.nonzero((d > 0) & (d <= max_depth) & np.isfinite(d))
+    z = d[v, u]
+    u, v = u * stride, v * stride
+    return np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=1)
+
+
+def hessian_degeneracy(H: np.ndarray) -> float:
+    """min(lambda_min / lambda_max) over the rotation (H[:3,:3]) and translation (H[3:,3:]) blocks of a 6x6
+    Gauss-Newton Hessian; 0 = some direction unconstrained, 1 = isotropic. Example: a plane's points give
+    H_tt ~ n n^T, eigenvalues (0, 0, 1): 0."""
+    H = np.asarray(H, dtype=np.float64)
+    ratios = []
+    for blk in (H[:3, :3], H[3:, 3:]):
+        ev = np.linalg.eigvalsh(0.5 * (blk + blk.T))
+        ratios.append(max(ev[0], 0.0) / ev[-1] if ev[-1] > 0 else 0.0)
+    return float(min(ratios))
+
+
+class PreparedCloud:
+    """A downsampled point cloud with covariances and its KD-tree, ready to be a GICP target or source."""
+
+    def __init__(self, points: np.ndarray, cfg: GicpConfig):
+        sg = _small_gicp()
+        self.n_raw = int(points.shape[0])
+        if self.n_raw < cfg.neighbors + 1:
+            self.cloud, self.tree, self.size = None, None, 0
+            return
+        self.cloud, self.tree = sg.preprocess_points(np.ascontiguousarray(points, dtype=np.float64),
+                                                     downsampling_resolution=cfg.downsample,
+                                                     num_neighbors=cfg.neighbors, num_threads=cfg.threads)
+        self.size = int(self.cloud.size())
+
+
+def prepare_depth(depth: np.ndarray, intr, cfg: GicpConfig) -> PreparedCloud:
+    """A frame's depth image -> its prepared camera-frame cloud."""
+    pts = depth_points(depth, intr.fx, intr.fy, intr.cx, intr.cy, cfg.pixel_stride, cfg.max_depth)
+    return PreparedCloud(pts, cfg)
+
+
+def register(target: PreparedCloud, source: PreparedCloud, init_T: np.ndarray, cfg: GicpConfig) -> Registration:
+    """GICP of `source` onto `target` from `init_T` (source -> target, (4, 4)); checks fitness, degeneracy and the
+    size of the correction. A failed check still returns GICP's pose, with ok False and the reason."""
+    init_T = np.asarray(init_T, dtype=np.float64)
+    min_pts = max(50, 3 * cfg.neighbors)
+    if target.size < min_pts or source.size < min_pts:
+        return Registration(init_T.copy(), False, "too_few_points", 0.0, 0.0, 0)
+    sg = _small_gicp()
+    res = sg.align(target.cloud, source.cloud, target.tree, init_T_target_source=init_T, registration_type="GICP",
+                   max_correspondence_distance=cfg.max_corr, num_threads=cfg.threads,
+                   max_iterations=cfg.max_iterations, rotation_epsilon=cfg.eps_rot,
+                   translation_epsilon=cfg.eps_trans)
+    T = np.asarray(res.T_target_source, dtype=np.float64)
+    fitness = float(res.num_inliers) / max(source.size, 1)
+    degeneracy = hessian_degeneracy(np.asarray(res.H))
+    reason = None
+    if not np.isfinite(T).all():
+        reason = "not_converged"
+    elif fitness < cfg.min_fitness:
+        reason = "low_fitness"
+    elif degeneracy < cfg.degeneracy_ratio:
+        reason = "degenerate"
+    elif np.linalg.norm(T[:3, 3] - init_T[:3, 3]) > cfg.max_step:
+        reason = "jump"
+    return Registration(T, reason is None, reason, fitness, degeneracy, int(res.iterations))

@@ -1,0 +1,102 @@
+"""The `accurate` and `gicp` presets end to end on a tiny built-in run: each ablation key changes what runs (seen in
+log.jsonl), GICP keyframes and the map's fallback, and an interrupted run resumes to the uninterrupted result."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("small_gicp", reason="the accurate / gicp presets need small_gicp (pip install small_gicp)")
+
+from inrslam.config import load_config  # noqa: E402
+from inrslam.io.trajectory import read_tum  # noqa: E402
+from inrslam.runner import resume_slam, run_slam  # noqa: E402
+
+FRAMES = 8
+SMALL = [f"data.max_frames={FRAMES}", "data.builtin.width=96", "data.builtin.height=72", "slam.init_iters=60",
+         "slam.track_pixels=256", "slam.map_iters=5", "slam.map_pixels=512", "slam.checkpoint_every=2",
+         "slam.gicp.pixel_stride=1", "slam.sdf_track.points=2048", "eval.enabled=false", "mesh.enabled=false",
+         "output.tensorboard=false", "seed=1"]
+# every piece on, on every frame (not only when GICP fails)
+ALL_ON = ["slam.sdf_track.only_on_init_failure=false", "slam.track_only_on_init_failure=false",
+          "slam.track_iters=4", "slam.bundle_adjust=true"]
+
+
+def tracks(run_dir) -> list[dict]:
+    recs = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
+    return [r for r in recs if r["type"] == "track"]
+
+
+def run(tmp_path_factory, name, preset, extra=()):
+    out = tmp_path_factory.mktemp(name) / "run"
+    run_slam(load_config(preset=preset, overrides=SMALL + list(extra)), out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def all_on(tmp_path_factory):
+    return run(tmp_path_factory, "all_on", "accurate", ALL_ON)
+
+
+def test_every_piece_runs_when_switched_on(all_on):
+    recs = tracks(all_on)
+    assert [r["frame"] for r in recs] == list(range(1, FRAMES))
+    for r in recs:
+        assert 0.0 <= r["gicp_fitness"] <= 1.0 and r["gicp_degeneracy"] >= 0.0  # GICP ran
+        assert r["sdf_iters"] >= 1 and r["sdf_points"] > 0  # point-to-surface Gauss-Newton ran
+        assert r["iters"] >= 1 and r["loss"] is not None  # rendered refinement ran
+    info = json.loads((all_on / "run_info.json").read_text())
+    assert info["status"] == "complete"
+    ts, est = read_tum(all_on / "trajectory.txt")
+    _, gt = read_tum(all_on / "trajectory_gt.txt")
+    # the tracked camera follows the motion (at 96x72 px and 60 initialisation steps the map is coarse)
+    motion = np.linalg.norm(gt[:, :3, 3] - gt[0, :3, 3], axis=1).max()
+    assert np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1).max() < 0.5 * motion
+
+
+def test_gicp_keyframe_target_is_renewed_and_previous_target_is_the_last_frame(all_on, tmp_path_factory):
+    targets = [r["gicp_target"] for r in tracks(all_on)]  # accurate: slam.gicp.target = keyframe
+    assert targets[0] == 0 and all(t < f for t, f in zip(targets, range(1, FRAMES)))
+    baseline = run(tmp_path_factory, "gicp", "gicp")
+    recs = tracks(baseline)
+    assert [r["gicp_target"] for r in recs] == list(range(0, FRAMES - 1))  # frame-to-frame
+    for r in recs:  # the baseline runs no neural tracking at all
+        assert r["iters"] == 0 and r["loss"] is None and "sdf_iters" not in r
+    _, est = read_tum(baseline / "trajectory.txt")
+    _, gt = read_tum(baseline / "trajectory_gt.txt")
+    assert np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1).max() < 0.003  # clean synthetic depth: millimetres
+
+
+def test_neural_tracking_runs_only_where_gicp_failed(tmp_path_factory):
+    # an impossible fitness requirement makes every registration fail: the map takes over on every frame
+    out = run(tmp_path_factory, "fallback", "accurate", ["slam.gicp.min_fitness=1.01"])
+    recs = tracks(out)
+    for r in recs:
+        assert r["fallback"].startswith("gicp_low_fitness")
+        assert r["sdf_iters"] >= 1 and r["iters"] >= 1
+    events = json.loads((out / "metrics.json").read_text())["fallbacks"]
+    assert events == FRAMES - 1
+
+
+def test_const_velocity_init_skips_gicp(tmp_path_factory):
+    out = run(tmp_path_factory, "cv", "accurate", ALL_ON + ["slam.init=const_velocity", "slam.sdf_track.iters=0"])
+    for r in tracks(out):
+        assert "gicp_fitness" not in r and "sdf_iters" not in r and r["iters"] >= 1
+
+
+def test_interrupted_accurate_run_resumes_to_the_uninterrupted_result(all_on, tmp_path):
+    out = tmp_path / "interrupted"
+
+    def stop_after_frame_4(i, n, info):
+        if i == 4:
+            raise KeyboardInterrupt  # after the checkpoint of frame 3 (checkpoint_every = 2)
+
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(load_config(preset="accurate", overrides=SMALL + ALL_ON), out, progress=stop_after_frame_4)
+    assert (out / "checkpoints" / "latest.pt").is_file() and not (out / "trajectory.txt").exists()
+    resume_slam(out)
+    assert (out / "trajectory.txt").read_text() == (all_on / "trajectory.txt").read_text()
+    strip = lambda recs: [{k: v for k, v in r.items() if not k.endswith("_ms")} for r in recs]
+    assert strip(tracks(out)) == strip(tracks(all_on))
