@@ -21,7 +21,7 @@ PRESETS = ["paper", "accurate", "gicp"]
 
 def run_one(preset: str, encoding: str, frames: int, data: str) -> dict:
     from inrslam.config import load_config
-    from inrslam.data.open import open_dataset
+    from inrslam.datasets import open_dataset
     from inrslam.fields.kernels.threads import resolve_threads, thread_scope
     from inrslam.slam.system import SlamSystem
 

@@ -22,7 +22,7 @@ ENCODINGS = ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+t
 
 def run_one(encoding: str, kernel: str, frames: int, render: str, data: str, init_iters: int) -> dict:
     from inrslam.config import load_config
-    from inrslam.data.open import open_dataset
+    from inrslam.datasets import open_dataset
     from inrslam.slam.system import SlamSystem
 
     cfg = load_config(preset="paper", overrides=[

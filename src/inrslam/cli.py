@@ -243,7 +243,7 @@ def _eval_command(args) -> int:
             vals = [float(x) for x in args.intrinsics.split(",")]
             if len(vals) != 6:
                 raise InrslamError("--intrinsics expects fx,fy,cx,cy,width,height")
-            from inrslam.data.frame import Intrinsics
+            from inrslam.geometry.intrinsics import Intrinsics
 
             intr = Intrinsics(vals[0], vals[1], vals[2], vals[3], int(vals[4]), int(vals[5]))
         metrics = ev.eval_mesh_files(args.mesh, args.gt_mesh, cameras_path=args.cameras, intrinsics=intr,

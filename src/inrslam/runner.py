@@ -6,8 +6,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from inrslam.config.loader import load_config
+from inrslam.config.loader import dump_config, load_config
 from inrslam.errors import ConfigError
+from inrslam.io.atomic import write_text
 from inrslam.io.rundir import RunDir
 
 
@@ -23,7 +24,7 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress=None, overwrite: bool = F
         threads: torch / numba threads for this run when `cfg.threads` is 0 (None: every core); recorded in
             `run_info.json` and reused by `resume_slam`.
     """
-    from inrslam.data.open import open_dataset
+    from inrslam.datasets import open_dataset
     from inrslam.fields.kernels.threads import resolve_threads, thread_scope
     from inrslam.slam.system import SlamSystem
 
@@ -37,13 +38,15 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress=None, overwrite: bool = F
     threads = resolve_threads(cfg.threads or threads or 0)
     with thread_scope(threads):
         system = SlamSystem(cfg, dataset, out, progress=progress, threads=threads)
+        out.mkdir(parents=True, exist_ok=True)
+        write_text(rd.config, dump_config(cfg))  # the resolved config: `--config` reproduces the run
         system.run(resume=False)
         return _evaluate(system)
 
 
 def resume_slam(run_dir: str | os.PathLike, progress=None) -> Path:
     """Continue an interrupted run from its last checkpoint, with the run's own resolved `config.yaml`."""
-    from inrslam.data.open import open_dataset
+    from inrslam.datasets import open_dataset
     from inrslam.fields.kernels.threads import resolve_threads, thread_scope
     from inrslam.slam.system import SlamSystem
 

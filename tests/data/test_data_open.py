@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from data_layouts import H, W, make_7scenes, make_replica, make_scannet, make_tum
 
-from inrslam.data import DATASETS, DataConfig, DatasetView, detect_layout, estimate_bounds, open_dataset, open_folder
+from inrslam.data import DATASETS, DataConfig, DatasetView, detect_layout, estimate_bounds, open_folder
+from inrslam.datasets import open_dataset
 from inrslam.data.bounds import backproject_world
 from inrslam.errors import ConfigError, DataError
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from inrslam.data import DataConfig, detect_layout, open_dataset, open_folder
+from inrslam.data import DataConfig, detect_layout, open_folder
+from inrslam.datasets import open_dataset
 from inrslam.data.bounds import backproject_world
 
 

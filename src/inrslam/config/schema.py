@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field as _field
+from dataclasses import dataclass
+from dataclasses import field as _field
 
 from inrslam.data.config import DataConfig
+from inrslam.eval.config import EvalConfig
 from inrslam.fields.config import FieldConfig
 from inrslam.rendering.config import LossConfig, RenderConfig, SamplingConfig
-from inrslam.eval.config import EvalConfig
 from inrslam.slam.config import MeshConfig, OutputConfig, SlamConfig
 
 

@@ -7,6 +7,7 @@ import numpy as np
 
 from inrslam.data.frame import RGBDDataset
 from inrslam.errors import DataError
+from inrslam.geometry.pinhole import backproject_np
 
 
 def backproject_world(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, step: int = 1) -> np.ndarray:
@@ -14,11 +15,7 @@ def backproject_world(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, step: i
 
     p_cam = z * ((u - cx) / fx, (v - cy) / fy, 1),  p_world = R p_cam + t  with c2w = [R | t].
     """
-    d = depth[::step, ::step].astype(np.float64)
-    v, u = np.mgrid[0 : depth.shape[0] : step, 0 : depth.shape[1] : step]
-    ok = d > 0
-    z, u, v = d[ok], u[ok], v[ok]
-    p = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
+    p = backproject_np(depth, K[0, 0], K[1, 1], K[0, 2], K[1, 2], stride=step)
     return p @ c2w[:3, :3].T + c2w[:3, 3]
 
 

@@ -27,7 +27,7 @@ from inrslam.data.base import (
     read_camera_json,
     require_dir,
 )
-from inrslam.data.frame import Intrinsics
+from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.data.posefiles import check_pose, read_pose_rows
 from inrslam.data.registry import DATASETS
 

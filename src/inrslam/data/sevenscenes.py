@@ -19,7 +19,7 @@ from typing import Optional
 import numpy as np
 
 from inrslam.data.base import FolderDataset, first_existing, numbered_files, pair_numbered
-from inrslam.data.frame import Intrinsics
+from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.data.images import image_size
 from inrslam.data.posefiles import check_pose, read_matrix, read_pose_matrix
 from inrslam.data.registry import DATASETS

@@ -26,7 +26,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from inrslam.data.frame import Intrinsics
+from inrslam.geometry.intrinsics import Intrinsics
+from inrslam.geometry.pinhole import pixel_directions_np, project_np
 from inrslam.eval.trajectory import align_umeyama, sim3_matrix
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -117,8 +118,7 @@ def pixel_rays(c2w: np.ndarray, intr: Intrinsics, u: np.ndarray, v: np.ndarray) 
     Returns origins (N, 3) and directions (N, 3) = R ((u − cx)/fx, (v − cy)/fy, 1).
     """
     c2w = np.asarray(c2w, dtype=np.float64)
-    d = np.stack([(np.asarray(u, np.float64) - intr.cx) / intr.fx, (np.asarray(v, np.float64) - intr.cy) / intr.fy,
-                  np.ones(np.shape(u))], -1)
+    d = pixel_directions_np(intr.fx, intr.fy, intr.cx, intr.cy, u, v)
     dirs = d @ c2w[:3, :3].T
     origins = np.broadcast_to(c2w[:3, 3], dirs.shape).copy()
     return origins, dirs
@@ -187,11 +187,7 @@ def visibility_counts(
         if not np.all(np.isfinite(c2w)):
             continue
         R, c = c2w[:3, :3], c2w[:3, 3]
-        pc = (X - c) @ R
-        z = pc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = intrinsics.fx * pc[:, 0] / z + intrinsics.cx
-            v = intrinsics.fy * pc[:, 1] / z + intrinsics.cy
+        u, v, z = project_np((X - c) @ R, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
         inside = (z > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
         idx = np.nonzero(inside)[0]
         if idx.size == 0:

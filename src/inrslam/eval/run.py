@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 from rich.table import Table
 
-from inrslam.data.frame import Intrinsics
+from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.errors import DataError
 from inrslam.eval.config import Alignment, EvalConfig
 from inrslam.eval.mesh import cull_mesh, mesh_metrics

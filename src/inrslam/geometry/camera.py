@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from inrslam.data.frame import Intrinsics
+from inrslam.geometry.intrinsics import Intrinsics
 
 
 def pixel_directions(intr: Intrinsics, u: Tensor, v: Tensor) -> Tensor:

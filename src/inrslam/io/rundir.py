@@ -53,8 +53,8 @@ class RunDir:
         for table in (self.FILES, self.SWEEP_FILES, self.DIRS):
             if key in table:
                 return self.root / table[key]
-        raise KeyError(f"no run-directory entry {key!r} (files: {', '.join(self.FILES)}, {', '.join(self.SWEEP_FILES)}; "
-                       f"folders: {', '.join(self.DIRS)})")
+        files = ", ".join([*self.FILES, *self.SWEEP_FILES])
+        raise KeyError(f"no run-directory entry {key!r} (files: {files}; folders: {', '.join(self.DIRS)})")
 
     config = property(lambda self: self.path("config"))
     run_info = property(lambda self: self.path("run_info"))

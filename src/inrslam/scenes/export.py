@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from inrslam.data.frame import Intrinsics
+from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.io.atomic import atomic_path, write_json, write_text
 from inrslam.io.trajectory import write_tum
 from inrslam.scenes.store import encode_depth

@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from inrslam.data.frame import Intrinsics
+from inrslam.geometry.intrinsics import Intrinsics
+from inrslam.geometry.pinhole import image_directions_np
 from inrslam.scenes.geometry import SceneGeometry, shade
 from inrslam.scenes.textures import box_uv, material_arrays, sample_atlas, texture_atlas
 
@@ -30,9 +31,7 @@ def make_intersector(mesh: trimesh.Trimesh):
 
 def camera_dirs(intr: Intrinsics) -> np.ndarray:
     """(H*W, 3) float64 camera-frame directions with z = 1, row-major over (v, u)."""
-    v, u = np.meshgrid(np.arange(intr.height, dtype=np.float64), np.arange(intr.width, dtype=np.float64), indexing="ij")
-    d = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1)
-    return d.reshape(-1, 3)
+    return image_directions_np(intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
 
 
 class Renderer:

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from inrslam.data.frame import Intrinsics
+from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.scenes.config import SceneConfig
 from inrslam.errors import ConfigError
 from inrslam.scenes.layouts import DEFAULT_FRAMES, SCENES, SceneLayout

@@ -16,7 +16,7 @@ class KeyframeStore:
         slot: (M',) keyframe slot of each ray. Buffers grow by doubling; the first `n_rays` rows are in use.
     """
 
-    def __init__(self, device: torch.device = torch.device("cpu")):
+    def __init__(self, device: torch.device | str = "cpu"):
         self.device = torch.device(device)
         self.frame_ids: list[int] = []
         self.dirs = torch.zeros(0, 3, device=self.device)

@@ -9,9 +9,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from inrslam.data.frame import Intrinsics
 from inrslam.fields import build_field, make_optimizer
 from inrslam.geometry.camera import pixel_directions, world_rays
+from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.rendering import build_renderer, compute_losses, render_rays, renderer_param_groups, sample_depths
 
 
@@ -69,7 +69,8 @@ class SceneModel(nn.Module):
 
     # -- held-out rendering (no measured depth) -----------------------------------------------------------
     @torch.no_grad()
-    def render_image(self, c2w: Tensor, intr: Intrinsics, n_coarse: int = 96, chunk: int = 4096) -> tuple[Tensor, Tensor]:
+    def render_image(self, c2w: Tensor, intr: Intrinsics, n_coarse: int = 96,
+                     chunk: int = 4096) -> tuple[Tensor, Tensor]:
         """Render a full frame *without* the measured depth: coarse uniform samples to the box exit, the first
         + to - SDF crossing then serves as the depth guiding the standard free-space + surface sampling.
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from inrslam.errors import ConfigError
+from inrslam.geometry.pinhole import backproject_np
 from inrslam.slam.config import GicpConfig
 
 
@@ -44,12 +45,8 @@ def _small_gicp():
 def depth_points(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float, stride: int = 1,
                  max_depth: float = np.inf) -> np.ndarray:
     """(H, W) depth in metres -> (N, 3) float64 camera-frame points of the valid pixels (0 < d <= max_depth) on
-    every `stride`-th row and column; OpenCV axes, x = (u - cx) d / fx."""
-    d = np.asarray(depth, dtype=np.float64)[::stride, ::stride]
-    v, u = np.nonzero((d > 0) & (d <= max_depth) & np.isfinite(d))
-    z = d[v, u]
-    u, v = u * stride, v * stride
-    return np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=1)
+    every `stride`-th row and column (`inrslam.geometry.pinhole.backproject_np`)."""
+    return backproject_np(depth, fx, fy, cx, cy, stride, max_depth)
 
 
 def hessian_degeneracy(H: np.ndarray) -> float:

@@ -3,7 +3,6 @@ a self-describing run directory, checkpoint and resume (spec §1, §7)."""
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import platform
@@ -15,23 +14,23 @@ import numpy as np
 import torch
 
 import inrslam
-from inrslam.config.loader import dump_config
 from inrslam.data.frame import Frame
 from inrslam.errors import ConfigError
 from inrslam.geometry.camera import pixel_directions
-from inrslam.rendering.sampling import sample_pixels
-from inrslam.io.atomic import append_jsonl, atomic_path, write_json, write_text
+from inrslam.io.atomic import append_jsonl, atomic_path, write_json
 from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import write_tum
+from inrslam.rendering.sampling import sample_pixels
+from inrslam.slam.config import GicpTarget, PoseInit
 from inrslam.slam.keyframes import KeyframeStore
 from inrslam.slam.mapping import initialise, map_frame
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import SceneModel
-from inrslam.slam.config import GicpTarget, PoseInit
 from inrslam.slam.poses import constant_velocity, relative_trajectory
 from inrslam.slam.registration import prepare_depth, register
 from inrslam.slam.sdf_tracking import align_to_sdf
 from inrslam.slam.tracking import track_frame
+
 
 def _far(T: np.ndarray, dist: float, angle_deg: float) -> bool:
     """Whether a relative pose (4, 4) moves more than `dist` metres or rotates more than `angle_deg` degrees."""
@@ -221,7 +220,6 @@ class SlamSystem:
         if resume:
             self.load_checkpoint()
         else:
-            write_text(self.rd.config, dump_config(self.cfg))
             self.rd.log.write_text("")
         self.write_run_info("running")
         self._open_tensorboard(resume)
@@ -258,7 +256,8 @@ class SlamSystem:
             self.gt[i] = frame.c2w
         n_valid_depth = int((ft.depth > 0).sum())
         if i == 0:
-            c2w0 = torch.as_tensor(frame.c2w if frame.pose_valid else np.eye(4), dtype=torch.float32, device=self.device)
+            c2w0 = torch.as_tensor(frame.c2w if frame.pose_valid else np.eye(4), dtype=torch.float32,
+                                   device=self.device)
             self.est[0] = c2w0
             t0 = time.perf_counter()
             hist = initialise(self.model, self.optimizers,
