@@ -1,7 +1,7 @@
 """Leaderboards from run directories: collect, aggregate (mean ± std per G x F), mark the best, format.
 
 Reads only what runs wrote (metrics.json, run_info.json, config.yaml, bench.json); never re-runs anything.
-Columns follow the paper's leaderboards (spec §11.1) plus model size: Acc, Comp [cm], Comp [%], ATE [cm],
+Columns follow the paper's leaderboards (docs/spec.md §11.1) plus model size: Acc, Comp [cm], Comp [%], ATE [cm],
 PSNR [dB] and Depth L1 [cm] "from processes" (the training-time renders, `psnr_process_db`,
 `depth_l1_process_m`), Track [ms] per frame, Map [ms] per call, Model [MB].
 """
@@ -50,7 +50,7 @@ COLUMNS: tuple[Column, ...] = (
 )
 COLUMN_BY_KEY = {c.key: c for c in COLUMNS}
 
-# Paper names (spec §0.1); unknown registry names are shown as they are.
+# Paper names (docs/spec.md §0.1); unknown registry names are shown as they are.
 RENDER_LABELS = {"direct": "SDF(direct)", "density": "SDF(density)", "neus": "SDF(surface)", "volsdf": "VolSDF",
                  "nerf": "NeRF"}
 ENCODING_LABELS = {"mlp": "MLP", "dense": "Dense", "hash": "Sparse (hash)", "triplane": "Tri.", "tensorf": "Fact.",

@@ -1,4 +1,4 @@
-"""NeuralRGBD synthetic scenes (Azinović et al. 2022; the paper's "Practical" scenario, spec §9.2).
+"""NeuralRGBD synthetic scenes (Azinović et al. 2022; the paper's "Practical" scenario, docs/spec.md §9.2).
 
 Layout::
 
@@ -40,7 +40,7 @@ NEURALRGBD_BOUNDS = {
     "thin_geometry": [[-2.5, 1.1], [-0.3, 1.1], [0.1, 3.9]],
     "whiteroom": [[-2.6, 3.2], [-0.4, 3.6], [0.5, 8.3]],
 }
-"""Scene boxes of the paper's configs (spec §9.2), metres, world frame of poses.txt."""
+"""Scene boxes of the paper's configs (docs/spec.md §9.2), metres, world frame of poses.txt."""
 
 FOCAL = 554.2562584220408
 

@@ -1,4 +1,4 @@
-"""Replica, NICE-SLAM release (spec §9.1).
+"""Replica, NICE-SLAM release (docs/spec.md §9.1).
 
 Layout::
 
@@ -41,7 +41,7 @@ REPLICA_BOUNDS = {
     "office3": [[-5.7, 4.1], [-6.5, 3.9], [-1.8, 2.5]],
     "office4": [[-2.7, 6.8], [-3.8, 5.7], [-2.7, 3.1]],
 }
-"""Scene boxes of the paper's configs (spec §9.1), metres, world frame of traj.txt."""
+"""Scene boxes of the paper's configs (docs/spec.md §9.1), metres, world frame of traj.txt."""
 
 
 @DATASETS.register("replica", help="NICE-SLAM Replica: results/frame*.jpg, results/depth*.png, traj.txt")

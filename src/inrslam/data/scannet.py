@@ -1,4 +1,4 @@
-"""ScanNet, exported with the official SensReader (spec §9.3).
+"""ScanNet, exported with the official SensReader (docs/spec.md §9.3).
 
 Layout::
 

@@ -1,4 +1,4 @@
-"""TUM RGB-D benchmark (Sturm et al. 2012), spec §9.4.
+"""TUM RGB-D benchmark (Sturm et al. 2012), docs/spec.md §9.4.
 
 Layout::
 

@@ -17,7 +17,7 @@ class Alignment(str, enum.Enum):
 
 @dataclass
 class EvalConfig:
-    """Protocol of `inrslam.eval.run.evaluate_run` (defaults = the benchmark's protocol, spec §8, ICP off)."""
+    """Protocol of `inrslam.eval.run.evaluate_run` (defaults = the benchmark's protocol, docs/spec.md §8, ICP off)."""
 
     align: Alignment = Alignment.SE3  # ATE alignment: se3 | sim3 | none
     max_time_diff: float = 1e-3  # s, timestamp association tolerance between trajectory.txt and trajectory_gt.txt

@@ -6,7 +6,7 @@ parameter of a hit *is* its z-depth.
 
 Ray casting is naturally double-sided: a ray reports the nearest triangle it crosses whatever the triangle's
 winding / normal. That is exactly the reference's "render with original and flipped winding and keep the nearest
-depth" (spec §8.6 step 2), without rendering twice.
+depth" (docs/spec.md §8.6 step 2), without rendering twice.
 
 No I/O here: meshes come in as `trimesh.Trimesh`, results go out as arrays, meshes and dicts.
 
@@ -214,7 +214,7 @@ def cull_mesh(
     eps: float = 0.03,
     occlusion: bool = True,
 ) -> trimesh.Trimesh:
-    """Remove the parts of a mesh no camera saw: frustum + occlusion culling (Neural-RGBD / GO-Surf, spec §8.6).
+    """Remove the parts of a mesh no camera saw: frustum + occlusion culling (Neural-RGBD / GO-Surf, docs/spec.md §8.6).
 
     1. cameras c2ws[::every] (ground-truth poses in the benchmark; non-finite ones skipped);
     2. per vertex, count cameras with it in frustum and cameras observing it (`visibility_counts`, occluder =
@@ -318,7 +318,7 @@ def mesh_metrics(
         Comp% = (1/|G|) #{g ∈ G : min_r |g − r| < threshold}     (fraction 0–1)
     as NICE-SLAM / Co-SLAM's `neural_slam_eval`. If `icp`, the reconstruction is first moved by point-to-point
     ICP from its vertices to the GT vertices (max correspondence `icp_max_corr`, identity init) — the reference
-    does this by default, we do not (spec §8.7, §13.22).
+    does this by default, we do not (docs/spec.md §8.7, §13.22).
 
     Args:
         rec, gt: meshes in metres (the reconstruction is usually culled first, `cull_mesh`).

@@ -229,7 +229,7 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
             if res["ate_n_used"] == 0:
                 notes.append(f"ATE: no estimated timestamp within {cfg.max_time_diff} s of a GT timestamp")
             rel_path = rd.trajectory_relative
-            if rel_path.is_file():  # spec §7.6: non-keyframes carried along by their keyframe's refinement
+            if rel_path.is_file():  # docs/spec.md §7.6: non-keyframes carried along by their keyframe's refinement
                 ts_rel, est_rel = read_tum(rel_path)
                 rel_gt = _associated_gt(ts_rel, ts_gt, gt, cfg.max_time_diff)
                 res["ate_relative_rmse_m"] = trajectory_metrics(est_rel, rel_gt, None, cfg.align, cfg.rpe_delta)[

@@ -84,7 +84,7 @@ def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_diff: float = 0.02, offset
 
     All pairs (i, j) with |ts_a[i] − (ts_b[j] + offset)| < max_diff are candidates; they are accepted greedily in
     order of increasing time difference, each index used at most once. Runs in O((N + M) log(N + M) + P) for P
-    candidate pairs (the original benchmark code was O(N²) per call, spec §13.20).
+    candidate pairs (the original benchmark code was O(N²) per call, docs/spec.md §13.20).
 
     Args:
         ts_a: (N,) seconds.  ts_b: (M,) seconds.

@@ -1,4 +1,4 @@
-"""Scene representations F (spec §3): encodings (MLP, dense / hash grids, tri-planes, TensoRF, hybrids), their
+"""Scene representations F (docs/spec.md §3): encodings (MLP, dense / hash grids, tri-planes, TensoRF, hybrids), their
 decoders and coupling modes, fused CPU kernels (``kernels/``), the lazy-Adam optimiser and model size.
 
     field = build_field(FieldConfig(encoding="hash"), bounds)      # bounds (3,2) metres

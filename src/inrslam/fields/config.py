@@ -1,4 +1,4 @@
-"""Typed configuration of the scene representation F (spec §3)."""
+"""Typed configuration of the scene representation F (docs/spec.md §3)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 
 class Coupling(str, enum.Enum):
-    """Geometry/appearance coupling (spec §3.8)."""
+    """Geometry/appearance coupling (docs/spec.md §3.8)."""
 
     COUPLED_BASE = "coupled_base"  # one encoder; SDF and colour decoders read the same features
     COUPLED = "coupled"  # one encoder; SDF decoder emits 1 + geo_feat_dim, colour reads the geometric feature

@@ -35,7 +35,7 @@ class TableEncoder(nn.Module):
 
 
 class GridEncoder(TableEncoder):
-    """Multi-resolution dense or hash grid: trilinear per level, levels concatenated -> (N, L·F) (spec §3.4–3.5)."""
+    """Multi-resolution dense or hash grid: trilinear per level, levels concatenated -> (N, L·F) (docs/spec.md §3.4–3.5)."""
 
     def __init__(self, extent: np.ndarray, coarse: float, fine: float, levels: int, feature_dim: int, hashed: bool,
                  log2_hashmap_size: int, faithful: bool, init: float, kernel: KernelChoice):

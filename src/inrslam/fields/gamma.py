@@ -1,4 +1,4 @@
-"""Positional encodings γ(p̂) of normalised coordinates p̂ (spec §3.2)."""
+"""Positional encodings γ(p̂) of normalised coordinates p̂ (docs/spec.md §3.2)."""
 
 from __future__ import annotations
 

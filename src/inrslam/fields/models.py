@@ -1,4 +1,4 @@
-"""Scene representations F: encoder(s) + decoders -> (SDF in truncation units, colour logits) (spec §3).
+"""Scene representations F: encoder(s) + decoders -> (SDF in truncation units, colour logits) (docs/spec.md §3).
 
 Every field normalises world points x (metres) to p̂ = (x − b_min)/(b_max − b_min); encoders clamp p̂ to the
 unit box for their table lookups (border extension: an outside point reads the nearest box face, with zero
@@ -30,18 +30,18 @@ class FieldOutput(NamedTuple):
 
 
 def grid_decoder(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
-    """"Grid decoder" (spec §3.4): Linear(in→h) ReLU Linear(h→out), no biases."""
+    """"Grid decoder" (docs/spec.md §3.4): Linear(in→h) ReLU Linear(h→out), no biases."""
     return nn.Sequential(nn.Linear(in_dim, hidden, bias=False), nn.ReLU(), nn.Linear(hidden, out_dim, bias=False))
 
 
 def plane_decoder(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
-    """"Decomp decoder" (spec §3.6): Linear(in→h) ReLU Linear(h→h) ReLU Linear(h→out), with biases."""
+    """"Decomp decoder" (docs/spec.md §3.6): Linear(in→h) ReLU Linear(h→h) ReLU Linear(h→out), with biases."""
     return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
                          nn.Linear(hidden, out_dim))
 
 
 def mlp_trunk(in_dim: int, width: int, depth: int) -> nn.Sequential:
-    """depth × (Linear, ReLU) of the given width (spec §3.3; the configured skip never triggers)."""
+    """depth × (Linear, ReLU) of the given width (docs/spec.md §3.3; the configured skip never triggers)."""
     layers: list[nn.Module] = []
     for i in range(depth):
         layers += [nn.Linear(in_dim if i == 0 else width, width), nn.ReLU()]
@@ -79,7 +79,7 @@ class Field(nn.Module):
 
 
 class EncoderField(Field):
-    """Encoder + decoders with the three coupling modes of spec §3.8.
+    """Encoder + decoders with the three coupling modes of docs/spec.md §3.8.
 
     coupled_base: s = D_s([f, γ]), c = D_c([γ, f]);  coupled: [s, g] = D_s([f, γ]), c = D_c([g, γ]) (g 15-d);
     decoupled: s = D_s([f_geo, γ]), c = D_c([γ, f_app]) with an independent appearance encoder.
@@ -127,7 +127,7 @@ class EncoderField(Field):
 
 @ENCODINGS.register("mlp", help="4x256 MLP on Gaussian Fourier features (iMAP-like)")
 class MLPField(Field):
-    """F = MLP (spec §3.3): x = sin(p̂ᵀB) (93-d), trunk depth × width ReLU, SDF head width→h→1(+g).
+    """F = MLP (docs/spec.md §3.3): x = sin(p̂ᵀB) (93-d), trunk depth × width ReLU, SDF head width→h→1(+g).
 
     Colour: coupled_base reads the trunk output; coupled reads [g, x]; decoupled has its own trunk on x.
     """
@@ -170,12 +170,12 @@ class _GridField(EncoderField):
 
 @ENCODINGS.register("dense", help="multi-resolution dense feature grid (24 cm .. 2 cm), trilinear")
 class DenseGridField(_GridField):
-    """F = Dense grid (spec §3.4) with the grid decoder."""
+    """F = Dense grid (docs/spec.md §3.4) with the grid decoder."""
 
 
 @ENCODINGS.register("hash", help="multi-resolution hash grid (2^log2_hashmap_size rows per level)")
 class HashGridField(_GridField):
-    """F = Sparse / hash grid (spec §3.5) with the grid decoder."""
+    """F = Sparse / hash grid (docs/spec.md §3.5) with the grid decoder."""
 
     hashed = True
 
@@ -192,18 +192,18 @@ class _PlaneField(EncoderField):
 
 @ENCODINGS.register("triplane", help="multi-resolution tri-plane (sum of xy, xz, yz planes), tanh SDF decoder")
 class TriPlaneField(_PlaneField):
-    """F = Tri-plane (spec §3.6) with the plane decoder."""
+    """F = Tri-plane (docs/spec.md §3.6) with the plane decoder."""
 
 
 @ENCODINGS.register("tensorf", help="TensoRF vector-matrix factorisation (planes x lines), tanh SDF decoder")
 class TensoRFField(_PlaneField):
-    """F = Fact. / TensoRF (spec §3.7; true VM by default) with the plane decoder."""
+    """F = Fact. / TensoRF (docs/spec.md §3.7; true VM by default) with the plane decoder."""
 
     encoder_type = TensoRFEncoder
 
 
 class _HybridField(Field):
-    """Hybrid (spec §3.9): grid + one coarse tri-plane level for geometry, grid only for colour; coupling ignored.
+    """Hybrid (docs/spec.md §3.9): grid + one coarse tri-plane level for geometry, grid only for colour; coupling ignored.
 
     s = D_s([f_grid, f_plane, γ]) (no tanh), c = D_c([γ, f_grid]); both grid decoders (no biases).
     """

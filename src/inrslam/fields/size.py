@@ -1,4 +1,4 @@
-"""Model size as the paper counts it (spec §8.4): all scene parameters, bytes / 2^20."""
+"""Model size as the paper counts it (docs/spec.md §8.4): all scene parameters, bytes / 2^20."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 Quaternions are (w, x, y, z), scalar first, and need not be unit length: the rotation matrix uses the
 factor 2/|q|^2 so the norm drops out (as the paper's code; the default pose parameterisation). The tangent-space
 alternative (`se3_exp`, `slam.pose_param=se3`) is well-defined at zero rotation, unlike the original axis-angle
-option (spec §13.15).
+option (docs/spec.md §13.15).
 """
 
 from __future__ import annotations

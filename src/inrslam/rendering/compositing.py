@@ -6,7 +6,7 @@ from torch import Tensor
 
 
 def composite(weights: Tensor, rgb: Tensor, z: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Weighted sums along each ray, no background colour and no normalisation by Σw (spec §4).
+    """Weighted sums along each ray, no background colour and no normalisation by Σw (docs/spec.md §4).
 
     Ĉ = Σ_i w_i c_i,  D̂ = Σ_i w_i z_i,  O = Σ_i w_i,  Var = Σ_i w_i (z_i - D̂)².
 

@@ -1,6 +1,6 @@
 """Typed options of the rendering package: rendering function G, ray sampling, losses.
 
-Defaults are the `paper` preset (Hua & Wang, CVPR 2024, supplementary + system spec) with the bugs of spec §13
+Defaults are the `paper` preset (Hua & Wang, CVPR 2024, supplementary + system spec) with the bugs of docs/spec.md §13
 fixed; `faithful` values are noted per field.
 """
 
@@ -26,14 +26,14 @@ class NerfActivation(str, Enum):
 
 
 class SamplingVariant(str, Enum):
-    """Depth-guided sampling layout (spec §5.1 / §7.8)."""
+    """Depth-guided sampling layout (docs/spec.md §5.1 / §7.8)."""
 
     NONE = "none"  # n_free samples on [near, far_factor*D] + n_surface samples in D +- band*T
     SAMPLING = "sampling"  # 'sampling variant' of supp. Table 3: all n_free+n_surface samples on [near, far_factor*D]
 
 
 class LossReduction(str, Enum):
-    """How per-sample SDF errors are averaged (spec §6 vs supplementary Eqs. (3), (5))."""
+    """How per-sample SDF errors are averaged (docs/spec.md §6 vs supplementary Eqs. (3), (5))."""
 
     PER_RAY = "per_ray"  # mean over the masked samples of each ray, then mean over rays having such samples (Eqs.)
     GLOBAL = "global"  # one mean over all masked samples of the batch (the reference code)
@@ -45,7 +45,7 @@ class RenderConfig:
 
     name: str = "density"  # renderer: direct | density | neus | volsdf | nerf
     beta: float = 10.0  # density: sharpness beta of alpha = 1 - exp(-beta*sigmoid(-beta*s)), 1/T-units
-    learn_beta: bool = False  # density: optimise beta (the reference code never does, spec §3.11)
+    learn_beta: bool = False  # density: optimise beta (the reference code never does, docs/spec.md §3.11)
     beta_lr: float = 1e-3  # learning rate of every learnable rendering parameter (beta, inv_s, VolSDF beta)
     neus_init_log_inv_s: float = 5.0  # NeuS: initial log of the inverse std inv_s (1/m); e^5 = 148/m ~ 7 mm
     neus_learn_s: bool = True  # NeuS: optimise inv_s (the reference keeps it fixed)
@@ -61,7 +61,7 @@ class RenderConfig:
 
 @dataclass
 class SamplingConfig:
-    """Samples along each ray (spec §5.1) and pixels per image (spec §5.2)."""
+    """Samples along each ray (docs/spec.md §5.1) and pixels per image (docs/spec.md §5.2)."""
 
     n_free: int = 48  # samples on [near, far_factor * D] for rays with depth
     n_surface: int = 12  # samples on D +- band*T for rays with depth
@@ -70,12 +70,12 @@ class SamplingConfig:
     far_factor: float = 1.2  # free-space samples end at far_factor * D
     band: float = 1.0  # surface band half-width in units of T (reference code / faithful: 1.5)
     jitter: bool = True  # stratified jitter of the merged samples (fresh every call)
-    variant: SamplingVariant = SamplingVariant.NONE  # sampling layout variant (spec §7.8)
+    variant: SamplingVariant = SamplingVariant.NONE  # sampling layout variant (docs/spec.md §7.8)
 
 
 @dataclass
 class LossConfig:
-    """Weights and masks of the training loss (spec §6, supplementary Eqs. (1)-(6))."""
+    """Weights and masks of the training loss (docs/spec.md §6, supplementary Eqs. (1)-(6))."""
 
     color: float = 5.0  # lambda_p, weight of the colour MSE
     depth: float = 1.0  # lambda_g, weight of the depth MSE (rays with depth)
@@ -83,5 +83,5 @@ class LossConfig:
     center: float = 50.0  # lambda_c, weight of the SDF term within +-center_band*T of the depth
     tail: float = 200.0  # lambda_t, weight of the SDF term in the rest of the +-T band
     center_band: float = 0.4  # half-width of the centre band in units of T
-    free_space_target: float = 1.0  # free-space SDF target, T-units ('loss variant' of spec §7.8: 0.1)
+    free_space_target: float = 1.0  # free-space SDF target, T-units ('loss variant' of docs/spec.md §7.8: 0.1)
     reduction: LossReduction = LossReduction.PER_RAY  # averaging of the SDF terms

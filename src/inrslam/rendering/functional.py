@@ -81,7 +81,7 @@ def weights_from_optical_depth(tau: Tensor) -> Tensor:
 
 
 def bell_weights(sdf: Tensor, truncation: float) -> Tensor:
-    """Unnormalised bell ŵ_i = σ(s_i/T) σ(-s_i/T) (spec §4.1).
+    """Unnormalised bell ŵ_i = σ(s_i/T) σ(-s_i/T) (docs/spec.md §4.1).
 
     With s in T-units this is σ(d/T²)σ(-d/T²) in metric SDF d: peak 0.25 at the zero crossing, half maximum at
     |d| ≈ 1.76 T² (1.8 cm for T = 0.1 m), exactly the reference / Co-SLAM form.
@@ -97,10 +97,10 @@ def bell_weights(sdf: Tensor, truncation: float) -> Tensor:
 
 
 def first_surface_mask(sdf: Tensor, z: Tensor, truncation: float, no_crossing_keeps_all: bool = True) -> Tensor:
-    """Mask m_i = 1[z_i < z_k + T] keeping samples up to T behind the first zero crossing (spec §4.1).
+    """Mask m_i = 1[z_i < z_k + T] keeping samples up to T behind the first zero crossing (docs/spec.md §4.1).
 
     k is the first index whose sign differs from the next sample's (0 counts as inside, so a sample exactly on the
-    surface closes a crossing). Rays without a crossing keep every sample (fix of spec §13.7); with
+    surface closes a crossing). Rays without a crossing keep every sample (fix of docs/spec.md §13.7); with
     `no_crossing_keeps_all=False` they use k = 0 like the reference code.
 
     Args:
@@ -121,7 +121,8 @@ def first_surface_mask(sdf: Tensor, z: Tensor, truncation: float, no_crossing_ke
 
 
 def direct_weights(sdf: Tensor, z: Tensor, truncation: float, no_crossing_keeps_all: bool = True) -> Tensor:
-    """SDF(direct) weights w_i = ŵ_i m_i / (Σ_j ŵ_j m_j + 1e-8), ŵ and m as above (spec §4.1, Azinović et al. 2022).
+    """SDF(direct) weights w_i = ŵ_i m_i / (Σ_j ŵ_j m_j + 1e-8), ŵ and m as above (docs/spec.md §4.1; Azinović et al.
+    2022).
 
     Args:
         sdf: (R, S) T-units; z: (R, S) metres; truncation: T metres.
@@ -139,7 +140,7 @@ def direct_weights(sdf: Tensor, z: Tensor, truncation: float, no_crossing_keeps_
 
 
 def density_optical_depth(sdf: Tensor, beta: Tensor | float) -> Tensor:
-    """τ_i = β σ(-β s_i) so that α_i = 1 - exp(-τ_i) = 1 - exp(-β σ(-β s_i)) (spec §4.2; no spacing δ enters).
+    """τ_i = β σ(-β s_i) so that α_i = 1 - exp(-τ_i) = 1 - exp(-β σ(-β s_i)) (docs/spec.md §4.2; no spacing δ enters).
 
     Args:
         sdf: (R, S) SDF, T-units.

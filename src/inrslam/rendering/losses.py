@@ -1,4 +1,4 @@
-"""Training losses (spec §6; supplementary Eqs. (1)-(6), Hua & Wang CVPR 2024; masks after ESLAM).
+"""Training losses (docs/spec.md §6; supplementary Eqs. (1)-(6), Hua & Wang CVPR 2024; masks after ESLAM).
 
     L = λ_p L_p + λ_g L_g + λ_fs L_fs + λ_c L_c + λ_t L_t
 
@@ -9,7 +9,7 @@ Per sample i of a ray with depth D (T = truncation, metres; s in T-units; z z-de
     tail                |z - D| <= T and not centre     e = z + s·T - D
     (behind, z > D + T: unsupervised)
 Reduction: `per_ray` = mean of e² over each ray's masked samples, then mean over the rays having such samples
-(Eqs. 3, 5); `global` = mean of e² over every masked sample of the batch (the reference code, spec §13.16).
+(Eqs. 3, 5); `global` = mean of e² over every masked sample of the batch (the reference code, docs/spec.md §13.16).
 Empty sets contribute exactly 0 (never NaN).
 
 The free-space / centre / tail terms read the field's scalar as an SDF. For renderers that are not SDF-based
@@ -112,7 +112,7 @@ def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, 
 
 
 def depth_l1(depth: Tensor, target_depth: Tensor) -> Tensor:
-    """Mean |D̂ - D| over rays with D > 0 (metres; 0 if none) — the logged 'Depth L1' (spec §6, §8.2)."""
+    """Mean |D̂ - D| over rays with D > 0 (metres; 0 if none) — the logged 'Depth L1' (docs/spec.md §6, §8.2)."""
     return safe_mean((depth - target_depth).abs(), target_depth > 0)
 
 

@@ -68,11 +68,11 @@ def _scalar_param(value: float, learn: bool) -> nn.Parameter:
 
 @RENDERERS.register("direct", help="SDF(direct): Co-SLAM / Azinovic bell weights, first surface, normalised")
 class DirectWeights(SdfToWeights):
-    """SDF(direct) (spec §4.1; Azinović et al., Neural RGB-D Surface Reconstruction, CVPR 2022; Co-SLAM).
+    """SDF(direct) (docs/spec.md §4.1; Azinović et al., Neural RGB-D Surface Reconstruction, CVPR 2022; Co-SLAM).
 
     w_i = ŵ_i m_i / (Σ_j ŵ_j m_j + 1e-8),  ŵ_i = σ(s_i/T) σ(-s_i/T),  m_i = 1[z_i < z_k + T],
     k = first sign change of s along the ray. Rays without a sign change keep all samples (the reference uses k = 0,
-    spec §13.7; reproduced with `faithful`). Normalised: Σ w = 1, so colour/depth are weighted averages.
+    docs/spec.md §13.7; reproduced with `faithful`). Normalised: Σ w = 1, so colour/depth are weighted averages.
     """
 
     def forward(self, sdf, z, dirs, normals, truncation):
@@ -81,7 +81,7 @@ class DirectWeights(SdfToWeights):
 
 @RENDERERS.register("density", help="SDF(density): StyleSDF/ESLAM alpha = 1 - exp(-beta sigmoid(-beta s))")
 class DensityWeights(SdfToWeights):
-    """SDF(density) (spec §4.2; StyleSDF, Or-El et al. CVPR 2022, as used by ESLAM, Johari et al. CVPR 2023).
+    """SDF(density) (docs/spec.md §4.2; StyleSDF, Or-El et al. CVPR 2022, as used by ESLAM, Johari et al. CVPR 2023).
 
     α_i = 1 - exp(-β σ(-β s_i)),  w_i = α_i Π_{j<i} (1 - α_j),  β in 1/T-units (default 10, fixed unless
     `learn_beta`). No sample spacing enters (σ·δ := 1), so the result depends on the sampling density: with the
@@ -99,7 +99,7 @@ class DensityWeights(SdfToWeights):
 
 @RENDERERS.register("neus", help="SDF(surface): NeuS with learnable inverse std, metric intervals")
 class NeusWeights(SdfToWeights):
-    """NeuS (Wang et al., NeurIPS 2021), done right (fixes spec §4.3 / §13.2).
+    """NeuS (Wang et al., NeurIPS 2021), done right (fixes docs/spec.md §4.3 / §13.2).
 
     Work in metric SDF f = s·T. Section i = [b_i, b_{i+1}] around sample z_i (mid-point partition,
     `functional.section_bounds`); slope ĉ_i = annealed ⟨d/|d|, ∇f(x_i)⟩ with the *unit ray direction* and the

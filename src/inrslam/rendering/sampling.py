@@ -1,4 +1,4 @@
-"""Ray sampling (depth-guided, spec §5.1) and pixel sampling (spec §5.2).
+"""Ray sampling (depth-guided, docs/spec.md §5.1) and pixel sampling (docs/spec.md §5.2).
 
 Sample positions are z-depths along the unnormalised camera-z-1 directions (metres), so the point of sample z is
 o + z·d and a measured depth D compares directly with z.
@@ -35,7 +35,7 @@ def aabb_exit(origins: Tensor, dirs: Tensor, bounds: Tensor) -> Tensor:
 
 
 def stratified_jitter(z: Tensor, generator: torch.Generator | None = None) -> Tensor:
-    """Jitter sorted samples within their strata (spec §5.1).
+    """Jitter sorted samples within their strata (docs/spec.md §5.1).
 
     With mid-points m_k = (z_k + z_{k+1})/2: lower = [z_0, m_0, ..., m_{S-2}], upper = [m_0, ..., m_{S-2}, z_{S-1}],
     z'_k = lower_k + u_k (upper_k - lower_k), u_k ~ U(0, 1). The result stays sorted and inside [z_0, z_{S-1}].
@@ -56,7 +56,7 @@ def stratified_jitter(z: Tensor, generator: torch.Generator | None = None) -> Te
 
 
 def sample_counts(cfg: SamplingConfig) -> tuple[int, int]:
-    """(free-space, surface) sample counts for rays with depth, after the sampling variant (spec §7.8)."""
+    """(free-space, surface) sample counts for rays with depth, after the sampling variant (docs/spec.md §7.8)."""
     if SamplingVariant(cfg.variant) is SamplingVariant.SAMPLING:
         return cfg.n_free + cfg.n_surface, 0
     return cfg.n_free, cfg.n_surface
@@ -72,7 +72,7 @@ def sample_depths(
     truncation: float,
     generator: torch.Generator | None = None,
 ) -> Tensor:
-    """Sample z-depths along rays, guided by the measured depth (spec §5.1; supplementary §1).
+    """Sample z-depths along rays, guided by the measured depth (docs/spec.md §5.1; supplementary §1).
 
     Rays with depth D > 0: `n_free` samples near + (far_factor·D - near)·k/(n_free-1) and `n_surface` samples
     D - band·T + 2·band·T·k/(n_surface-1) (clamped to >= near), merged and sorted.
@@ -131,7 +131,7 @@ def sample_pixels(
     generator: torch.Generator | None = None,
     device: torch.device | str | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """Draw n distinct pixels uniformly from the image without its `edge_margin`-pixel border (spec §5.2).
+    """Draw n distinct pixels uniformly from the image without its `edge_margin`-pixel border (docs/spec.md §5.2).
 
     Args:
         height, width: image size; n: number of pixels; edge_margin: border width, pixels.

@@ -1,4 +1,4 @@
-"""Options of the SLAM loop (defaults = the paper's settings, supplementary §1 / spec §7)."""
+"""Options of the SLAM loop (defaults = the paper's settings, supplementary §1 / docs/spec.md §7)."""
 
 from __future__ import annotations
 

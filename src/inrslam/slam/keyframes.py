@@ -1,4 +1,4 @@
-"""The global keyframe ray store (spec §5.3): a random fraction of each keyframe's pixels, sampled uniformly
+"""The global keyframe ray store (docs/spec.md §5.3): a random fraction of each keyframe's pixels, sampled uniformly
 over the union of all stored rays at mapping time and transformed with the keyframe's *current* pose."""
 
 from __future__ import annotations

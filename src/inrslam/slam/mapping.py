@@ -1,4 +1,4 @@
-"""Mapping with global bundle adjustment over the keyframe ray store (spec §7.5)."""
+"""Mapping with global bundle adjustment over the keyframe ray store (docs/spec.md §7.5)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Mesh extraction: marching cubes on the field's SDF over the scene box (spec §8.5)."""
+"""Mesh extraction: marching cubes on the field's SDF over the scene box (docs/spec.md §8.5)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The scene model of a run: a field F, a rendering function G and the ray-batch objective they share in
-initialisation, tracking and mapping (spec §6: the same total loss everywhere)."""
+initialisation, tracking and mapping (docs/spec.md §6: the same total loss everywhere)."""
 
 from __future__ import annotations
 

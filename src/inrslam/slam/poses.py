@@ -56,7 +56,8 @@ def constant_velocity(prev: Tensor, prev2: Tensor | None) -> Tensor:
 
 
 def relative_trajectory(est: np.ndarray, rel: np.ndarray, rel_kf: np.ndarray, keyframes) -> np.ndarray:
-    """The "relative" trajectory of spec §7.6 (Co-SLAM's): keyframes keep their (bundle-adjusted) pose; every other
+    """The "relative" trajectory of docs/spec.md §7.6 (Co-SLAM's): keyframes keep their (bundle-adjusted) pose; every
+    other
     frame i with a reference rel_kf[i] >= 0 becomes est[rel_kf[i]] @ rel[i], its tracked pose relative to that
     keyframe carried along by the keyframe's refinement. est, rel (N,4,4) c2w; rel_kf (N,) int; returns (N,4,4)."""
     out = est.copy()

@@ -1,5 +1,5 @@
 """The SLAM run: initialise on frame 0, track every frame, map + bundle-adjust every `map_every`-th frame, write
-a self-describing run directory, checkpoint and resume (spec §1, §7)."""
+a self-describing run directory, checkpoint and resume (docs/spec.md §1, §7)."""
 
 from __future__ import annotations
 
@@ -97,7 +97,7 @@ class SlamSystem:
         self.optimizers = self.model.make_optimizers(cfg.slam.map_lr)
         self.store = KeyframeStore(device=self.device)
         self.est = torch.full((self.n_frames, 4, 4), float("nan"), dtype=torch.float32, device=self.device)
-        # relative bookkeeping (spec §7.6): tracked pose of frame i in the frame of the latest keyframe rel_kf[i]
+        # relative bookkeeping (docs/spec.md §7.6): tracked pose of frame i in the frame of its latest keyframe
         self.rel = torch.full((self.n_frames, 4, 4), float("nan"), dtype=torch.float32, device=self.device)
         self.rel_kf = np.full(self.n_frames, -1, dtype=np.int64)
         self.gt = np.full((self.n_frames, 4, 4), np.nan)

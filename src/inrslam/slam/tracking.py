@@ -1,4 +1,4 @@
-"""Tracking: optimise one camera pose against the frozen map (spec §7.4, with bug §13.9 fixed)."""
+"""Tracking: optimise one camera pose against the frozen map (docs/spec.md §7.4, with bug §13.9 fixed)."""
 
 from __future__ import annotations
 
