@@ -1,4 +1,5 @@
-"""ruff (rules in pyproject.toml) over the packages held to it; part of the test suite so CI runs it."""
+"""ruff and mypy (settings in pyproject.toml) over the packages held to them; part of the test suite so CI runs
+them."""
 
 from __future__ import annotations
 
@@ -23,5 +24,16 @@ def test_ruff_is_clean_on_the_linted_packages():
     if not (root / "pyproject.toml").is_file():
         pytest.skip("not a source checkout (no pyproject.toml beside src/)")
     res = subprocess.run([ruff, "check", "--output-format", "concise", *[str(src / p) for p in LINTED]],
+                         cwd=root, capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_mypy_is_clean_on_the_linted_packages():
+    pytest.importorskip("mypy", reason="mypy is not installed (pip install -e '.[test]')")
+    src = Path(inrslam.__file__).parent
+    root = src.parent.parent
+    if not (root / "pyproject.toml").is_file():
+        pytest.skip("not a source checkout (no pyproject.toml beside src/)")
+    res = subprocess.run([sys.executable, "-m", "mypy", "--no-error-summary", *[str(src / p) for p in LINTED]],
                          cwd=root, capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr

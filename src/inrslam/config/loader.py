@@ -113,7 +113,7 @@ def _validate_keys(cls: type, data: dict, source: str, prefix: str = "") -> None
             hint = f"; did you mean {close[0]!r}?" if close else f" (valid keys here: {', '.join(names)})"
             raise ConfigError(f"unknown config key {full!r} in {source}{hint}")
         tp, _ = _unwrap_optional(hints[key])
-        if dataclasses.is_dataclass(tp) and isinstance(value, dict):
+        if isinstance(tp, type) and dataclasses.is_dataclass(tp) and isinstance(value, dict):
             _validate_keys(tp, value, source, prefix=f"{full}.")
 
 
@@ -122,8 +122,8 @@ def _merge(base: dict, new: dict, sources: dict, source: str, prefix: str = "") 
     for k, v in new.items():
         full = f"{prefix}{k}"
         if isinstance(v, dict):
-            base_k = out.get(k) if isinstance(out.get(k), dict) else {}
-            out[k] = _merge(base_k, v, sources, source, prefix=f"{full}.")
+            prev = out.get(k)
+            out[k] = _merge(prev if isinstance(prev, dict) else {}, v, sources, source, prefix=f"{full}.")
         else:
             out[k] = v
             sources[full] = source
@@ -141,7 +141,7 @@ def _convert(tp: Any, value: Any, key: str, sources: dict) -> Any:
         if optional:
             return None
         raise fail(getattr(tp, "__name__", str(tp)))
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         if isinstance(value, tp):
             return value
         if not isinstance(value, dict):

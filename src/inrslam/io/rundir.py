@@ -83,7 +83,7 @@ class RunDir:
     def is_complete(self) -> bool:
         """run_info.json says status complete and metrics.json is a readable JSON object."""
         info = self.read_run_info()
-        return bool(info) and info.get("status") == "complete" and isinstance(self.read_metrics(), dict)
+        return info is not None and info.get("status") == "complete" and self.read_metrics() is not None
 
     def has_checkpoint(self) -> bool:
         """A partial run can be resumed: config.yaml and checkpoints/latest.pt exist."""

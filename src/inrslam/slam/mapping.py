@@ -34,21 +34,21 @@ def map_frame(model, optimizers: dict, store, kf_c2w: Tensor, cur_c2w: Tensor, c
     do_ba = cfg.bundle_adjust and K >= 2
     all_c2w = torch.cat([kf_c2w, cur_c2w[None]])  # slot K = current frame
     poses = PoseSet(all_c2w[1:], cfg.pose_param) if do_ba else None  # keyframe 0 fixed
-    pose_opt = torch.optim.Adam(poses.parameters(), lr=cfg.ba_lr) if do_ba else None
+    pose_opt = torch.optim.Adam(poses.parameters(), lr=cfg.ba_lr) if poses is not None else None
     n_cur = max(cfg.map_pixels // K, cfg.map_current_min)
     res = MapResult(kf_c2w.clone(), cur_c2w.clone())
     for it in range(1, cfg.map_iters + 1):
         slot, dirs_kf, rgb_kf, depth_kf = store.sample(cfg.map_pixels, generator)
         dirs_c, rgb_c, depth_c = cur_rays(n_cur)
         slots = torch.cat([slot, torch.full((dirs_c.shape[0],), K, dtype=torch.long, device=slot.device)])
-        mats = torch.cat([all_c2w[:1], poses.matrices()]) if do_ba else all_c2w
+        mats = torch.cat([all_c2w[:1], poses.matrices()]) if poses is not None else all_c2w
         c2w = ray_poses(mats, slots)
         losses, out = model.loss(c2w, torch.cat([dirs_kf, dirs_c]), torch.cat([rgb_kf, rgb_c]),
                                  torch.cat([depth_kf, depth_c]), generator)
         if not optimisation_step(losses["total"], optimizers):
             res.skipped += 1
             continue
-        if do_ba and it % cfg.ba_pose_every == 0:
+        if pose_opt is not None and it % cfg.ba_pose_every == 0:
             pose_opt.step()
             pose_opt.zero_grad(set_to_none=True)
         with torch.no_grad():
@@ -57,7 +57,7 @@ def map_frame(model, optimizers: dict, store, kf_c2w: Tensor, cur_c2w: Tensor, c
             if bool((d > 0).any()):
                 res.depth_l1.append(float(depth_l1(out.depth, d)))
             res.losses.append(float(losses["total"].detach()))
-    if do_ba:
+    if poses is not None:
         with torch.no_grad():
             mats = torch.cat([all_c2w[:1], poses.matrices()])
         res.kf_c2w, res.cur_c2w = mats[:K].detach().clone(), mats[K].detach().clone()

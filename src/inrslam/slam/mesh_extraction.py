@@ -39,10 +39,10 @@ def sdf_volume(field, axes: list[np.ndarray], chunk: int = 65536, device: torch.
         pts = np.empty((i1 - i0, ny, nz, 3), dtype=np.float32)
         pts[..., 0] = axes[0][i0:i1, None, None]
         pts[..., 1:] = yz
-        pts = pts.reshape(-1, 3)
+        rows = pts.reshape(-1, 3)
         base = i0 * plane
-        for s in range(0, pts.shape[0], chunk):
-            p = torch.from_numpy(pts[s:s + chunk]).to(device)
+        for s in range(0, rows.shape[0], chunk):
+            p = torch.from_numpy(rows[s:s + chunk]).to(device)
             flat[base + s:base + s + p.shape[0]] = field.sdf(p).float().cpu().numpy()
     return vol
 

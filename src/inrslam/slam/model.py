@@ -23,6 +23,8 @@ class SceneModel(nn.Module):
         bounds: (3, 2) scene box in metres.
     """
 
+    bounds: Tensor  # (3, 2) metres, a buffer
+
     def __init__(self, cfg, bounds: np.ndarray):
         super().__init__()
         self.cfg = cfg
@@ -34,7 +36,7 @@ class SceneModel(nn.Module):
     # -- optimisers -------------------------------------------------------------------------------------------
     def make_optimizers(self, lr: float) -> dict:
         """Scene optimiser(s): the field's (sparse-aware) Adam, plus Adam on learnable G parameters if any."""
-        opts = {"field": make_optimizer(self.field, lr)}
+        opts: dict[str, torch.optim.Optimizer] = {"field": make_optimizer(self.field, lr)}
         groups = renderer_param_groups(self.renderer, self.cfg.render)
         if groups:
             opts["render"] = torch.optim.Adam(groups)

@@ -23,6 +23,8 @@ class PoseSet(nn.Module):
         param: parameterisation.
     """
 
+    base: Tensor  # (K, 4, 4) initial poses of the SE3 parameterisation (a buffer)
+
     def __init__(self, c2w: Tensor, param: PoseParam = PoseParam.QUAT):
         super().__init__()
         self.param = PoseParam(param)

@@ -87,6 +87,7 @@ def align_to_sdf(field, c2w: Tensor, pts_cam: Tensor, truncation: float, cfg) ->
     it, converged, n_used, rms = 0, False, 0, float("nan")
     for it in range(1, cfg.iters + 1):
         x, r, g = sdf_residuals(field, T, pts_cam, truncation)
+        assert g is not None  # with_grad
         keep = (r.abs() < band) & torch.isfinite(r) & torch.isfinite(g).all(dim=1) & (g.norm(dim=1) > 0.1)
         n_used = int(keep.sum())
         if n_used < cfg.min_points:

@@ -9,6 +9,7 @@ import platform
 import resource
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -27,7 +28,7 @@ from inrslam.slam.mapping import initialise, map_frame
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import SceneModel
 from inrslam.slam.poses import constant_velocity, relative_trajectory
-from inrslam.slam.registration import prepare_depth, register
+from inrslam.slam.registration import PreparedCloud, prepare_depth, register
 from inrslam.slam.sdf_tracking import align_to_sdf
 from inrslam.slam.tracking import track_frame
 
@@ -112,8 +113,9 @@ class SlamSystem:
         self.proc_psnr: list[float] = []
         self.proc_depth_l1: list[float] = []
         self.events: list[dict] = []
-        self.tb = None
-        self._target_cloud = None  # (frame index, PreparedCloud) of the GICP target (not checkpointed: rebuilt)
+        self.tb: Any = None  # TensorBoard SummaryWriter when enabled
+        # (frame index, cloud) of the GICP target; not checkpointed: rebuilt from the dataset after a resume
+        self._target_cloud: tuple[int, PreparedCloud] | None = None
         self.gicp_kf = 0  # GICP keyframe (slam.gicp.target = keyframe)
 
     # -- bookkeeping --------------------------------------------------------------------------------------
@@ -272,6 +274,7 @@ class SlamSystem:
         pred = constant_velocity(prev, self.est[i - 2] if (i >= 2 and cfg.const_velocity) else None)
         t0 = time.perf_counter()
         extra: dict = {}
+        fallback: str | None
         if cfg.init is PoseInit.GICP:
             pred = self._gicp_init(i, frame, pred, extra)
         if n_valid_depth == 0:
