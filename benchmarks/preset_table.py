@@ -17,7 +17,7 @@ def row(run_dir: Path) -> dict:
     from inrslam.eval.run import eval_trajectory_files
 
     m = json.loads((run_dir / "metrics.json").read_text())
-    if m.get("ate_rmse_m") is None and (run_dir / "trajectory_gt.txt").is_file():
+    if m.get("drift_m_per_100") is None and (run_dir / "trajectory_gt.txt").is_file():  # older runs: no drift key
         m.update({k: v for k, v in eval_trajectory_files(run_dir / "trajectory.txt",
                                                         run_dir / "trajectory_gt.txt").items() if k not in m or
                   m[k] is None})

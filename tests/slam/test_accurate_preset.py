@@ -57,7 +57,7 @@ def test_every_piece_runs_when_switched_on(all_on):
 
 
 def test_gicp_keyframe_target_is_renewed_and_previous_target_is_the_last_frame(all_on, tmp_path_factory):
-    targets = [r["gicp_target"] for r in tracks(all_on)]  # accurate: slam.gicp.target = keyframe
+    targets = [r["gicp_target"] for r in tracks(all_on)]  # accurate: slam.gicp.target = local_map (its last keyframe)
     assert targets[0] == 0 and all(t < f for t, f in zip(targets, range(1, FRAMES)))
     baseline = run(tmp_path_factory, "gicp", "gicp")
     recs = tracks(baseline)
@@ -100,3 +100,13 @@ def test_interrupted_accurate_run_resumes_to_the_uninterrupted_result(all_on, tm
     assert (out / "trajectory.txt").read_text() == (all_on / "trajectory.txt").read_text()
     strip = lambda recs: [{k: v for k, v in r.items() if not k.endswith("_ms")} for r in recs]
     assert strip(tracks(out)) == strip(tracks(all_on))
+
+
+def test_local_map_target_registers_onto_merged_keyframes(tmp_path_factory):
+    out = run(tmp_path_factory, "local_map", "accurate", ["slam.gicp.target=local_map", "slam.gicp.kf_dist=0.01"])
+    recs = tracks(out)
+    targets = [r["gicp_target"] for r in recs]
+    assert len(set(targets)) > 1  # keyframes renewed (1 cm of motion)
+    _, est = read_tum(out / "trajectory.txt")
+    _, gt = read_tum(out / "trajectory_gt.txt")
+    assert np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1).max() < 0.003

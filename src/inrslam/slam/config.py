@@ -25,6 +25,7 @@ class GicpTarget(str, enum.Enum):
 
     PREVIOUS = "previous"  # the previous frame (frame-to-frame odometry)
     KEYFRAME = "keyframe"  # the last GICP keyframe, renewed on motion / overlap loss (drift per keyframe, not frame)
+    LOCAL_MAP = "local_map"  # the last `local_map_keyframes` GICP keyframes merged in the world (frame-to-model)
 
 
 @dataclass
@@ -47,6 +48,7 @@ class GicpConfig:
     kf_dist: float = 0.15  # target = keyframe: a new GICP keyframe after this much motion from it, metres ...
     kf_angle: float = 10.0  # ... or this much rotation, degrees ...
     kf_fitness: float = 0.85  # ... or when the inlier fraction drops below this
+    local_map_keyframes: int = 5  # target = local_map: GICP keyframes merged into the target
 
 
 

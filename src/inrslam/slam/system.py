@@ -28,7 +28,7 @@ from inrslam.slam.mapping import initialise, map_frame
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import SceneModel
 from inrslam.slam.poses import constant_velocity, relative_trajectory
-from inrslam.slam.registration import PreparedCloud, prepare_depth, register
+from inrslam.slam.registration import PreparedCloud, depth_points, prepare_depth, register
 from inrslam.slam.sdf_tracking import align_to_sdf
 from inrslam.slam.tracking import track_frame
 
@@ -116,7 +116,9 @@ class SlamSystem:
         self.tb: Any = None  # TensorBoard SummaryWriter when enabled
         # (frame index, cloud) of the GICP target; not checkpointed: rebuilt from the dataset after a resume
         self._target_cloud: tuple[int, PreparedCloud] | None = None
-        self.gicp_kf = 0  # GICP keyframe (slam.gicp.target = keyframe)
+        self._local_target: tuple[tuple[int, ...], PreparedCloud] | None = None  # slam.gicp.target = local_map
+        self._kf_points: dict[int, np.ndarray] = {}  # camera-frame points of the local map's keyframes
+        self.gicp_kfs = [0]  # GICP keyframes (slam.gicp.target = keyframe / local_map), the last is the current
 
     # -- bookkeeping --------------------------------------------------------------------------------------
     def _log(self, record: dict) -> None:
@@ -180,7 +182,7 @@ class SlamSystem:
             "generator": self.generator.get_state(),
             "track_ms": self.track_ms, "map_ms": self.map_ms, "init_ms": self.init_ms,
             "proc_psnr": self.proc_psnr, "proc_depth_l1": self.proc_depth_l1, "events": self.events,
-            "gicp_kf": self.gicp_kf,
+            "gicp_kfs": list(self.gicp_kfs),
             "log_bytes": log.stat().st_size if log.exists() else 0,
             "wall_s": self.wall_s_before + time.perf_counter() - self._t_start,
             "peak_mb": self._peak_memory_mb(),
@@ -207,7 +209,7 @@ class SlamSystem:
         self.track_ms, self.map_ms, self.init_ms = st["track_ms"], st["map_ms"], st["init_ms"]
         self.proc_psnr, self.proc_depth_l1, self.events = st["proc_psnr"], st["proc_depth_l1"], st["events"]
         self.next_frame = st["next_frame"]
-        self.gicp_kf = int(st.get("gicp_kf", 0))
+        self.gicp_kfs = list(st.get("gicp_kfs", [0]))
         self.wall_s_before = st["wall_s"]
         self.peak_mb_before = st["peak_mb"]
         log = self.rd.log
@@ -306,29 +308,51 @@ class SlamSystem:
             self._map(i, ft)
 
     def _gicp_init(self, i: int, frame: Frame, pred: torch.Tensor, rec: dict) -> torch.Tensor:
-        """GICP of frame i's depth onto its target (frame i-1, or the GICP keyframe) from the prediction; the
-        prediction when a check fails (the reason goes to `rec` as init_fallback). The target's prepared cloud is
-        kept in memory and rebuilt from the dataset after a resume."""
+        """GICP of frame i's depth onto its target (`slam.gicp.target`: frame i-1, the GICP keyframe, or a local map
+        of the last GICP keyframes) from the prediction; the prediction when a check fails (the reason goes to `rec`
+        as init_fallback). Targets are kept in memory and rebuilt from the dataset after a resume."""
         g = self.cfg.slam.gicp
         cur = prepare_depth(frame.depth, frame.intrinsics, g)
-        t_idx = i - 1 if g.target is GicpTarget.PREVIOUS else self.gicp_kf
-        if self._target_cloud is None or self._target_cloud[0] != t_idx:
-            t_frame = self.dataset[t_idx]
-            self._target_cloud = (t_idx, prepare_depth(t_frame.depth, t_frame.intrinsics, g))
-        target = self._target_cloud[1]
-        base = self.est[t_idx].double().cpu().numpy()
-        rel_pred = np.linalg.inv(base) @ pred.double().cpu().numpy()
-        reg = register(target, cur, rel_pred, g)
+        if g.target is GicpTarget.LOCAL_MAP:
+            t_idx, target, base = self.gicp_kfs[-1], self._local_map(g), np.eye(4)
+        else:
+            t_idx = i - 1 if g.target is GicpTarget.PREVIOUS else self.gicp_kfs[-1]
+            if self._target_cloud is None or self._target_cloud[0] != t_idx:
+                t_frame = self.dataset[t_idx]
+                self._target_cloud = (t_idx, prepare_depth(t_frame.depth, t_frame.intrinsics, g))
+            target, base = self._target_cloud[1], self.est[t_idx].double().cpu().numpy()
+        reg = register(target, cur, np.linalg.inv(base) @ pred.double().cpu().numpy(), g)
         rec.update(gicp_fitness=round(reg.fitness, 4), gicp_degeneracy=round(reg.degeneracy, 4), gicp_target=t_idx)
+        c2w = base @ reg.T_target_source
         if g.target is GicpTarget.PREVIOUS:
             self._target_cloud = (i, cur)
-        elif not reg.ok or _far(reg.T_target_source, g.kf_dist, g.kf_angle) or reg.fitness < g.kf_fitness:
-            self.gicp_kf = i  # this frame becomes the target of the next ones (after its tracking)
-            self._target_cloud = (i, cur)
+        else:
+            from_kf = (reg.T_target_source if g.target is GicpTarget.KEYFRAME
+                       else np.linalg.inv(self.est[self.gicp_kfs[-1]].double().cpu().numpy()) @ c2w)
+            if not reg.ok or _far(from_kf, g.kf_dist, g.kf_angle) or reg.fitness < g.kf_fitness:
+                self.gicp_kfs.append(i)  # the target of the next frames (placed at its tracked pose)
+                self._target_cloud = (i, cur)
         if not reg.ok:
             rec["init_fallback"] = f"gicp_{reg.reason}"
             return pred
-        return torch.as_tensor(base @ reg.T_target_source, dtype=pred.dtype, device=pred.device)
+        return torch.as_tensor(c2w, dtype=pred.dtype, device=pred.device)
+
+    def _local_map(self, g) -> PreparedCloud:
+        """World-frame cloud of the last `g.local_map_keyframes` GICP keyframes at their current poses (cached)."""
+        ids = tuple(self.gicp_kfs[-g.local_map_keyframes:])
+        if self._local_target is None or self._local_target[0] != ids:
+            pts = []
+            for k in ids:
+                if k not in self._kf_points:
+                    f = self.dataset[k]
+                    self._kf_points[k] = depth_points(f.depth, f.intrinsics.fx, f.intrinsics.fy, f.intrinsics.cx,
+                                                      f.intrinsics.cy, g.pixel_stride, g.max_depth)
+                T = self.est[k].double().cpu().numpy()
+                pts.append(self._kf_points[k] @ T[:3, :3].T + T[:3, 3])
+            for k in [k for k in self._kf_points if k not in ids]:
+                del self._kf_points[k]
+            self._local_target = (ids, PreparedCloud(np.concatenate(pts), g))
+        return self._local_target[1]
 
     def _sdf_refine(self, ft: "FrameTensors", pred: torch.Tensor, rec: dict) -> torch.Tensor:
         """Point-to-surface Gauss-Newton against the map from `pred` (slam.sdf_track)."""
