@@ -48,7 +48,7 @@ def main() -> None:
         if not (d / "metrics.json").is_file():
             continue
         r = row(d)
-        print(f"| {r['run']} | {fmt(r['ate_cm'])} | {fmt(r['drift_cm'])} | {fmt(r['final_cm'])} | "
+        print(f"| {r['run']} | {fmt(r['ate_cm'], 3)} | {fmt(r['drift_cm'], 3)} | {fmt(r['final_cm'], 3)} | "
               f"{fmt(r['depth_l1_cm'])} | {fmt(r['psnr'], 1)} | {fmt(r['s_per_frame'])} | {fmt(r['fallbacks'])} |")
 
 
