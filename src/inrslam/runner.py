@@ -12,7 +12,6 @@ from inrslam.io.atomic import write_text
 from inrslam.io.rundir import RunDir
 
 
-
 def run_slam(cfg, out_dir: str | os.PathLike, progress=None, overwrite: bool = False,
              threads: int | None = None) -> Path:
     """Run SLAM with a resolved `RunConfig`, write the run directory `out_dir` and evaluate it.
