@@ -33,7 +33,7 @@ def main() -> None:
     from inrslam.datasets import open_dataset
     from inrslam.eval.trajectory import ate, drift_per_100
     from inrslam.slam.config import GicpConfig
-    from inrslam.slam.registration import PreparedCloud, depth_points, register
+    from inrslam.slam.registration import PreparedCloud, depth_points, moved_beyond, register
 
     cfg = load_config(preset="paper", overrides=[f"data.path={args.data}", f"data.dataset={args.dataset}",
                                                  f"data.max_frames={args.max_frames}"])
@@ -44,8 +44,7 @@ def main() -> None:
     def points(i: int) -> np.ndarray:
         if pts[i] is None:
             f = ds[i]
-            pts[i] = depth_points(f.depth, f.intrinsics.fx, f.intrinsics.fy, f.intrinsics.cx, f.intrinsics.cy,
-                                  g.pixel_stride, g.max_depth)
+            pts[i] = depth_points(f.depth, f.intrinsics, g)
         return pts[i]
 
     def target_of(kfs: list[int], est: list[np.ndarray]) -> tuple[PreparedCloud, np.ndarray]:
@@ -66,9 +65,8 @@ def main() -> None:
         est.append(c2w if reg.ok else pred)
         fails += not reg.ok
         from_kf = np.linalg.inv(est[kfs[-1]]) @ c2w
-        cos = np.clip((np.trace(from_kf[:3, :3]) - 1) / 2, -1, 1)
         if (args.target == "previous" or not reg.ok or reg.fitness < g.kf_fitness
-                or np.linalg.norm(from_kf[:3, 3]) > g.kf_dist or np.degrees(np.arccos(cos)) > g.kf_angle):
+                or moved_beyond(from_kf, g.kf_dist, g.kf_angle)):
             kfs.append(i)
             target, base = target_of(kfs, est)
         if args.target != "local_map":

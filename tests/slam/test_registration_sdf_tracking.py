@@ -13,7 +13,13 @@ from inrslam.slam.config import GicpConfig, SdfTrackConfig
 from inrslam.slam.sdf_tracking import align_to_sdf, gauss_newton_step, sdf_residuals
 
 small_gicp = pytest.importorskip("small_gicp", reason="the GICP initialiser needs small_gicp (pip install small_gicp)")
-from inrslam.slam.registration import depth_points, hessian_degeneracy, prepare_depth, register  # noqa: E402
+from inrslam.slam.registration import (  # noqa: E402
+    depth_points,
+    hessian_degeneracy,
+    moved_beyond,
+    prepare_depth,
+    register,
+)
 
 INTR = Intrinsics(fx=160.0, fy=160.0, cx=79.5, cy=59.5, width=160, height=120)
 
@@ -62,11 +68,11 @@ def test_depth_points_back_project_a_fronto_parallel_plane():
     depth = np.full((INTR.height, INTR.width), 2.0, dtype=np.float32)
     depth[0, 0] = 0.0  # invalid
     depth[5, 7] = 9.0  # beyond max_depth
-    pts = depth_points(depth, INTR.fx, INTR.fy, INTR.cx, INTR.cy, max_depth=6.0)
+    pts = depth_points(depth, INTR, GicpConfig(pixel_stride=1, max_depth=6.0))
     assert pts.shape == (INTR.height * INTR.width - 2, 3)
     assert np.allclose(pts[:, 2], 2.0)
     assert np.allclose(pts[0], [(1 - INTR.cx) * 2 / INTR.fx, (0 - INTR.cy) * 2 / INTR.fy, 2.0])  # pixel (u=1, v=0)
-    strided = depth_points(depth, INTR.fx, INTR.fy, INTR.cx, INTR.cy, stride=2)
+    strided = depth_points(depth, INTR, GicpConfig(pixel_stride=2, max_depth=np.inf))
     assert np.allclose(strided[0], [(2 - INTR.cx) * 2 / INTR.fx, (0 - INTR.cy) * 2 / INTR.fy, 2.0])
 
 
@@ -96,6 +102,14 @@ def test_degeneracy_check_rejects_a_single_plane_view():
     reg = register(a, b, np.eye(4), cfg)
     assert not reg.ok and reg.reason == "degenerate"
     assert reg.degeneracy < GicpConfig().degeneracy_ratio  # ~1e-3: the floor of GICP's covariance regularisation
+
+
+def test_keyframe_renewal_rule_on_analytic_motions():
+    T = np.eye(4)
+    T[:3, 3] = (0.06, 0.08, 0.0)  # 10 cm
+    assert moved_beyond(T, 0.09, 10.0) and not moved_beyond(T, 0.11, 10.0)
+    T = se3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, np.radians(12.0)], dtype=torch.float64)).numpy()
+    assert moved_beyond(T, 0.1, 10.0) and not moved_beyond(T, 0.1, 13.0)
 
 
 def test_hessian_degeneracy_of_analytic_blocks():

@@ -37,16 +37,22 @@ def _small_gicp():
     try:
         import small_gicp
     except ImportError:
-        raise ConfigError("config key 'slam.init': 'gicp' needs the small_gicp package "
-                          "(pip install small_gicp, or pip install -e '.[accurate]')") from None
+        raise ConfigError("config key 'slam.init': 'gicp' needs the small_gicp package (pip install small_gicp; "
+                          "an inrslam install brings it)") from None
     return small_gicp
 
 
-def depth_points(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float, stride: int = 1,
-                 max_depth: float = np.inf) -> np.ndarray:
-    """(H, W) depth in metres -> (N, 3) float64 camera-frame points of the valid pixels (0 < d <= max_depth) on
-    every `stride`-th row and column (`inrslam.geometry.pinhole.backproject_np`)."""
-    return backproject_np(depth, fx, fy, cx, cy, stride, max_depth)
+def depth_points(depth: np.ndarray, intr, cfg: GicpConfig) -> np.ndarray:
+    """A frame's (H, W) depth in metres -> (N, 3) float64 camera-frame points of its valid pixels, every
+    `cfg.pixel_stride`-th row and column, depth <= `cfg.max_depth` (`inrslam.geometry.pinhole.backproject_np`)."""
+    return backproject_np(depth, intr.fx, intr.fy, intr.cx, intr.cy, cfg.pixel_stride, cfg.max_depth)
+
+
+def moved_beyond(T: np.ndarray, dist: float, angle_deg: float) -> bool:
+    """Whether a relative pose (4, 4) moves more than `dist` metres or rotates more than `angle_deg` degrees (the
+    GICP keyframe renewal rule)."""
+    cos = np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)
+    return bool(np.linalg.norm(T[:3, 3]) > dist or np.degrees(np.arccos(cos)) > angle_deg)
 
 
 def hessian_degeneracy(H: np.ndarray) -> float:
@@ -66,8 +72,7 @@ class PreparedCloud:
 
     def __init__(self, points: np.ndarray, cfg: GicpConfig):
         sg = _small_gicp()
-        self.n_raw = int(points.shape[0])
-        if self.n_raw < cfg.neighbors + 1:
+        if points.shape[0] < cfg.neighbors + 1:
             self.cloud, self.tree, self.size = None, None, 0
             return
         self.cloud, self.tree = sg.preprocess_points(np.ascontiguousarray(points, dtype=np.float64),
@@ -78,8 +83,7 @@ class PreparedCloud:
 
 def prepare_depth(depth: np.ndarray, intr, cfg: GicpConfig) -> PreparedCloud:
     """A frame's depth image -> its prepared camera-frame cloud."""
-    pts = depth_points(depth, intr.fx, intr.fy, intr.cx, intr.cy, cfg.pixel_stride, cfg.max_depth)
-    return PreparedCloud(pts, cfg)
+    return PreparedCloud(depth_points(depth, intr, cfg), cfg)
 
 
 def register(target: PreparedCloud, source: PreparedCloud, init_T: np.ndarray, cfg: GicpConfig) -> Registration:

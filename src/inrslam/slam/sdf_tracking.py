@@ -34,20 +34,16 @@ class SdfAlignResult:
     fallback: str | None  # "sdf_few_points" / "sdf_jump" / "sdf_nan" (input pose kept), or None
 
 
-def sdf_residuals(field, c2w: Tensor, pts_cam: Tensor, truncation: float, with_grad: bool = True
-                  ) -> tuple[Tensor, Tensor, Tensor | None]:
+def sdf_residuals(field, c2w: Tensor, pts_cam: Tensor, truncation: float) -> tuple[Tensor, Tensor, Tensor]:
     """SDF of camera points placed by `c2w`.
 
     Args:
         field: a `Field` (``sdf(x (N,3) m) -> (N,)`` in truncation units).
         c2w: (4, 4); pts_cam: (N, 3) metres; truncation: metres per SDF unit.
     Returns:
-        x (N, 3) world points, r (N,) metric SDF, g (N, 3) its spatial gradient (None unless with_grad).
+        x (N, 3) world points, r (N,) metric SDF, g (N, 3) its spatial gradient.
     """
     x = (pts_cam @ c2w[:3, :3].T + c2w[:3, 3]).detach()
-    if not with_grad:
-        with torch.no_grad():
-            return x, field.sdf(x) * truncation, None
     x.requires_grad_(True)
     with torch.enable_grad():
         r = field.sdf(x) * truncation
@@ -87,7 +83,6 @@ def align_to_sdf(field, c2w: Tensor, pts_cam: Tensor, truncation: float, cfg) ->
     it, converged, n_used, rms = 0, False, 0, float("nan")
     for it in range(1, cfg.iters + 1):
         x, r, g = sdf_residuals(field, T, pts_cam, truncation)
-        assert g is not None  # with_grad
         keep = (r.abs() < band) & torch.isfinite(r) & torch.isfinite(g).all(dim=1) & (g.norm(dim=1) > 0.1)
         n_used = int(keep.sum())
         if n_used < cfg.min_points:

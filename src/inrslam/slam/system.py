@@ -28,15 +28,9 @@ from inrslam.slam.mapping import initialise, map_frame
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import SceneModel
 from inrslam.slam.poses import constant_velocity, relative_trajectory
-from inrslam.slam.registration import PreparedCloud, depth_points, prepare_depth, register
+from inrslam.slam.registration import PreparedCloud, depth_points, moved_beyond, prepare_depth, register
 from inrslam.slam.sdf_tracking import align_to_sdf
 from inrslam.slam.tracking import track_frame
-
-
-def _far(T: np.ndarray, dist: float, angle_deg: float) -> bool:
-    """Whether a relative pose (4, 4) moves more than `dist` metres or rotates more than `angle_deg` degrees."""
-    cos = np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)
-    return bool(np.linalg.norm(T[:3, 3]) > dist or np.degrees(np.arccos(cos)) > angle_deg)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -312,7 +306,8 @@ class SlamSystem:
         of the last GICP keyframes) from the prediction; the prediction when a check fails (the reason goes to `rec`
         as init_fallback). Targets are kept in memory and rebuilt from the dataset after a resume."""
         g = self.cfg.slam.gicp
-        cur = prepare_depth(frame.depth, frame.intrinsics, g)
+        points = depth_points(frame.depth, frame.intrinsics, g)
+        cur = PreparedCloud(points, g)
         if g.target is GicpTarget.LOCAL_MAP:
             t_idx, target, base = self.gicp_kfs[-1], self._local_map(g), np.eye(4)
         else:
@@ -329,9 +324,11 @@ class SlamSystem:
         else:
             from_kf = (reg.T_target_source if g.target is GicpTarget.KEYFRAME
                        else np.linalg.inv(self.est[self.gicp_kfs[-1]].double().cpu().numpy()) @ c2w)
-            if not reg.ok or _far(from_kf, g.kf_dist, g.kf_angle) or reg.fitness < g.kf_fitness:
+            if not reg.ok or moved_beyond(from_kf, g.kf_dist, g.kf_angle) or reg.fitness < g.kf_fitness:
                 self.gicp_kfs.append(i)  # the target of the next frames (placed at its tracked pose)
                 self._target_cloud = (i, cur)
+                if g.target is GicpTarget.LOCAL_MAP:
+                    self._kf_points[i] = points  # no second read of this frame when the local map is rebuilt
         if not reg.ok:
             rec["init_fallback"] = f"gicp_{reg.reason}"
             return pred
@@ -343,10 +340,9 @@ class SlamSystem:
         if self._local_target is None or self._local_target[0] != ids:
             pts = []
             for k in ids:
-                if k not in self._kf_points:
+                if k not in self._kf_points:  # frame 0, or keyframes from before a resume
                     f = self.dataset[k]
-                    self._kf_points[k] = depth_points(f.depth, f.intrinsics.fx, f.intrinsics.fy, f.intrinsics.cx,
-                                                      f.intrinsics.cy, g.pixel_stride, g.max_depth)
+                    self._kf_points[k] = depth_points(f.depth, f.intrinsics, g)
                 T = self.est[k].double().cpu().numpy()
                 pts.append(self._kf_points[k] @ T[:3, :3].T + T[:3, 3])
             for k in [k for k in self._kf_points if k not in ids]:
