@@ -6,7 +6,6 @@ import os
 
 import numba
 import pytest
-import torch
 
 from inrslam.bench.worker import run_one
 from inrslam.errors import ConfigError

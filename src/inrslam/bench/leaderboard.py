@@ -18,7 +18,7 @@ from pathlib import Path
 import yaml
 
 from inrslam.bench.spec import scene_short_name
-from inrslam.bench.worker import is_complete, read_json
+from inrslam.bench.worker import is_complete
 from inrslam.io.rundir import RunDir
 
 MISSING = "–"

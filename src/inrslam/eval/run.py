@@ -22,7 +22,7 @@ from inrslam.errors import DataError
 from inrslam.eval.config import Alignment, EvalConfig
 from inrslam.eval.mesh import cull_mesh, mesh_metrics
 from inrslam.eval.trajectory import associate, ate, drift_per_100, rpe
-from inrslam.io.atomic import atomic_path, write_json
+from inrslam.io.atomic import atomic_path
 from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import read_tum
 
