@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import tempfile
 import time
 
 PRESETS = ["paper", "accurate", "gicp"]
@@ -28,17 +27,17 @@ def run_one(preset: str, encoding: str, frames: int, data: str) -> dict:
     cfg = load_config(preset=preset, overrides=[
         f"data.path={data}", f"data.max_frames={frames}", f"field.encoding={encoding}", "slam.checkpoint_every=0",
         "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false"])
-    with tempfile.TemporaryDirectory() as out, thread_scope(resolve_threads(cfg.threads)):
-        system = SlamSystem(cfg, open_dataset(cfg.data), out)
+    with thread_scope(resolve_threads(cfg.threads)):
+        system = SlamSystem(cfg, open_dataset(cfg.data))
         t0 = time.perf_counter()
         system.run()
         wall = time.perf_counter() - t0
-        tracked = max(len(system.track_ms), 1)
+        tracked = max(len(system.state.track_ms), 1)
         return {"preset": preset, "encoding": encoding, "render": cfg.render.name,
-                "track_ms": sum(system.track_ms) / tracked,
-                "map_ms": sum(system.map_ms) / max(len(system.map_ms), 1),
-                "per_frame_s": (sum(system.track_ms) + sum(system.map_ms)) / tracked / 1e3,
-                "init_s": system.init_ms / 1e3, "wall_s": wall}
+                "track_ms": sum(system.state.track_ms) / tracked,
+                "map_ms": sum(system.state.map_ms) / max(len(system.state.map_ms), 1),
+                "per_frame_s": (sum(system.state.track_ms) + sum(system.state.map_ms)) / tracked / 1e3,
+                "init_s": system.state.init_ms / 1e3, "wall_s": wall}
 
 
 def main() -> None:

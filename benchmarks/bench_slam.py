@@ -14,7 +14,6 @@ import argparse
 import json
 import os
 import platform
-import tempfile
 import time
 
 ENCODINGS = ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+tri"]
@@ -29,16 +28,15 @@ def run_one(encoding: str, kernel: str, frames: int, render: str, data: str, ini
         f"data.path={data}", f"data.max_frames={frames}", f"field.encoding={encoding}", f"field.kernel={kernel}",
         f"render.name={render}", f"slam.init_iters={init_iters}", "slam.checkpoint_every=0", "mesh.enabled=false",
         "eval.enabled=false", "output.tensorboard=false"])
-    with tempfile.TemporaryDirectory() as out:
-        system = SlamSystem(cfg, open_dataset(cfg.data), out)
-        t0 = time.perf_counter()
-        system.run()
-        wall = time.perf_counter() - t0
-        tracked = len(system.track_ms)
-        per_frame = (sum(system.track_ms) + sum(system.map_ms)) / max(tracked, 1)
-        return {"encoding": encoding, "kernel": kernel, "track_ms": sum(system.track_ms) / max(tracked, 1),
-                "map_ms": sum(system.map_ms) / max(len(system.map_ms), 1), "per_frame_s": per_frame / 1e3,
-                "init_ms_per_iter": system.init_ms / max(init_iters, 1), "wall_s": wall}
+    system = SlamSystem(cfg, open_dataset(cfg.data))
+    t0 = time.perf_counter()
+    system.run()
+    wall = time.perf_counter() - t0
+    tracked = len(system.state.track_ms)
+    per_frame = (sum(system.state.track_ms) + sum(system.state.map_ms)) / max(tracked, 1)
+    return {"encoding": encoding, "kernel": kernel, "track_ms": sum(system.state.track_ms) / max(tracked, 1),
+            "map_ms": sum(system.state.map_ms) / max(len(system.state.map_ms), 1), "per_frame_s": per_frame / 1e3,
+            "init_ms_per_iter": system.state.init_ms / max(init_iters, 1), "wall_s": wall}
 
 
 def main() -> None:

@@ -11,3 +11,7 @@ class DataError(InrslamError):
 
 class ConfigError(InrslamError):
     """Unknown keys, wrong types or invalid values in a configuration."""
+
+
+class RunError(InrslamError):
+    """A run directory that cannot be written or resumed (corrupt checkpoint, full disk, another run's files)."""

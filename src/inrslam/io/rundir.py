@@ -69,6 +69,7 @@ class RunDir:
     bench = property(lambda self: self.path("bench"))
     error = property(lambda self: self.path("error"))
     meshes = property(lambda self: self.path("meshes"))
+    checkpoints = property(lambda self: self.path("checkpoints"))
     tensorboard = property(lambda self: self.path("tensorboard"))
 
     def mesh_at(self, frame: int) -> Path:
@@ -122,3 +123,15 @@ class RunDir:
         merged = {**(self.read_metrics() or {}), **new}
         self.write_metrics(merged)
         return merged
+
+    def remove_stale_temporaries(self) -> list[Path]:
+        """Delete the temporary files of atomic writes a killed process left (`.NAME.*.tmp*` in the run folder,
+        checkpoints/ and meshes/); returns what was removed."""
+        gone = []
+        for folder in (self.root, self.checkpoints, self.meshes):
+            if folder.is_dir():
+                for p in folder.glob(".*.tmp*"):
+                    if p.is_file():
+                        p.unlink(missing_ok=True)
+                        gone.append(p)
+        return gone

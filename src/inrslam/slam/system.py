@@ -1,28 +1,22 @@
-"""The SLAM run: initialise on frame 0, track every frame, map + bundle-adjust every `map_every`-th frame, write
-a self-describing run directory, checkpoint and resume (docs/spec.md §1, §7)."""
+"""The SLAM loop (docs/spec.md §1, §7): initialise on frame 0, track every frame, map + bundle-adjust every
+`map_every`-th frame. It computes and returns; it writes no file. The run writer (`inrslam.runner`) drives it frame by
+frame and writes the run directory, the log and the checkpoints."""
 
 from __future__ import annotations
 
 import math
-import os
-import platform
-import resource
 import time
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
 import torch
+import trimesh
 
-import inrslam
-from inrslam.data.frame import Frame
+from inrslam.data.frame import Frame, RGBDDataset
 from inrslam.errors import ConfigError
-from inrslam.geometry.camera import pixel_directions
-from inrslam.io.atomic import append_jsonl, atomic_path, write_json
-from inrslam.io.rundir import RunDir
-from inrslam.io.trajectory import write_tum
-from inrslam.rendering.sampling import sample_pixels
-from inrslam.slam.config import GicpTarget, PoseInit
+from inrslam.slam.config import GicpConfig, GicpTarget, PoseInit, SlamRunConfig
+from inrslam.slam.frame_tensors import FrameTensors
 from inrslam.slam.keyframes import KeyframeStore
 from inrslam.slam.mapping import initialise, map_frame
 from inrslam.slam.mesh_extraction import extract_mesh
@@ -30,7 +24,11 @@ from inrslam.slam.model import SceneModel
 from inrslam.slam.poses import constant_velocity, relative_trajectory
 from inrslam.slam.registration import PreparedCloud, depth_points, moved_beyond, prepare_depth, register
 from inrslam.slam.sdf_tracking import align_to_sdf
+from inrslam.slam.state import SlamState
 from inrslam.slam.tracking import track_frame
+
+# (frame index, n_frames, info) -> None, called after every frame; info: see `SlamSystem.progress_info`
+Progress = Callable[[int, int, dict], None]
 
 
 def resolve_device(name: str) -> torch.device:
@@ -43,227 +41,112 @@ def resolve_device(name: str) -> torch.device:
     return dev
 
 
-class FrameTensors:
-    """One frame on the device, with uniform ray sampling helpers."""
+@dataclass
+class SlamResult:
+    """What a finished loop hands to its writer (numpy, float64 c2w in OpenCV axes).
 
-    def __init__(self, frame: Frame, device: torch.device):
-        self.frame = frame
-        self.intr = frame.intrinsics
-        self.rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb, dtype=np.float32)).to(device).reshape(-1, 3)
-        self.depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32)).to(device).reshape(-1)
-        self.device = device
+    est: (N, 4, 4) estimated poses; relative: (N, 4, 4) non-keyframes carried by their refined keyframe
+    (docs/spec.md §7.6); gt: (N, 4, 4) ground truth (NaN = none); timestamps: (N,) seconds; keyframes: frame ids;
+    metrics: the process metrics of docs/metrics.md (timings, model size, PSNR while mapping, fallbacks).
+    """
 
-    def rays(self, idx: torch.Tensor):
-        """(n,) flat pixel indices -> dirs_cam (n,3), rgb (n,3), depth (n,)."""
-        W = self.intr.width
-        u, v = (idx % W).float(), torch.div(idx, W, rounding_mode="floor").float()
-        return pixel_directions(self.intr, u, v), self.rgb[idx], self.depth[idx]
-
-    def sample(self, n: int, generator: torch.Generator, edge: int = 0):
-        """n distinct pixels uniformly inside an `edge`-pixel border (no border if it would leave none)."""
-        H, W = self.intr.height, self.intr.width
-        if H - 2 * edge <= 0 or W - 2 * edge <= 0:
-            edge = 0
-        n = min(n, (H - 2 * edge) * (W - 2 * edge))
-        u, v = sample_pixels(H, W, n, edge, generator, self.device)
-        return self.rays(v * W + u)
+    est: np.ndarray
+    relative: np.ndarray
+    gt: np.ndarray
+    timestamps: np.ndarray
+    keyframes: list[int]
+    metrics: dict[str, Any]
 
 
 class SlamSystem:
-    """Runs SLAM on a dataset and writes the run directory `out_dir` (layout in docs/design.md)."""
+    """SLAM on `dataset` with the resolved config `cfg`; `state` holds all that a checkpoint saves.
 
-    def __init__(self, cfg, dataset, out_dir: str | os.PathLike, progress=None, threads: int | None = None):
+    Use: `process(i)` for i = state.next_frame .. n_frames - 1 (each returns the frame's log records), then
+    `mesh()` and `result()`. `run()` does all frames in memory (benchmarks, notebooks).
+    """
+
+    def __init__(self, cfg: SlamRunConfig, dataset: RGBDDataset):
         self.cfg = cfg
-        # the torch / numba thread count the caller holds for this run (recorded: results are bit-identical only
-        # at one count); None = whatever the process has set
-        self.threads = threads
         self.dataset = dataset
-        self.out = Path(out_dir)
-        self.rd = RunDir(self.out)
-        self.progress = progress  # callable(frame_idx, n_frames, info: dict) or None
         self.device = resolve_device(cfg.device)
         torch.manual_seed(cfg.seed)
-        self.generator = torch.Generator().manual_seed(cfg.seed)
         self.n_frames = len(dataset)
         if self.n_frames == 0:
             raise ConfigError(f"dataset {getattr(dataset, 'root', '?')} has no frames")
         self.bounds = np.asarray(dataset.bounds, dtype=np.float64)
         self.model = SceneModel(cfg, self.bounds).to(self.device)
-        self.optimizers = self.model.make_optimizers(cfg.slam.map_lr)
-        self.store = KeyframeStore(device=self.device)
-        self.est = torch.full((self.n_frames, 4, 4), float("nan"), dtype=torch.float32, device=self.device)
-        # relative bookkeeping (docs/spec.md §7.6): tracked pose of frame i in the frame of its latest keyframe
-        self.rel = torch.full((self.n_frames, 4, 4), float("nan"), dtype=torch.float32, device=self.device)
-        self.rel_kf = np.full(self.n_frames, -1, dtype=np.int64)
-        self.gt = np.full((self.n_frames, 4, 4), np.nan)
-        self.timestamps = np.zeros(self.n_frames)
-        self.next_frame = 0
-        self.track_ms: list[float] = []
-        self.map_ms: list[float] = []
-        self.init_ms = 0.0
-        self.wall_s_before = 0.0  # wall time of earlier (interrupted) segments of this run
-        self.peak_mb_before = 0.0  # peak memory of earlier segments
-        self._t_start = time.perf_counter()
-        self.proc_psnr: list[float] = []
-        self.proc_depth_l1: list[float] = []
-        self.events: list[dict] = []
-        self.tb: Any = None  # TensorBoard SummaryWriter when enabled
-        # (frame index, cloud) of the GICP target; not checkpointed: rebuilt from the dataset after a resume
+        self.state = SlamState.fresh(self.model, self.model.make_optimizers(cfg.slam.map_lr),
+                                     KeyframeStore(device=self.device), torch.Generator().manual_seed(cfg.seed),
+                                     self.n_frames, self.device)
+        self._records: list[dict] = []
+        # GICP targets, kept in memory only (rebuilt from the dataset after a resume): (frame index, cloud) of the
+        # previous frame / keyframe, (keyframe ids, cloud) of the local map, camera-frame points of its keyframes
         self._target_cloud: tuple[int, PreparedCloud] | None = None
-        self._local_target: tuple[tuple[int, ...], PreparedCloud] | None = None  # slam.gicp.target = local_map
-        self._kf_points: dict[int, np.ndarray] = {}  # camera-frame points of the local map's keyframes
-        self.gicp_kfs = [0]  # GICP keyframes (slam.gicp.target = keyframe / local_map), the last is the current
+        self._local_target: tuple[tuple[int, ...], PreparedCloud] | None = None
+        self._kf_points: dict[int, np.ndarray] = {}
 
-    # -- bookkeeping --------------------------------------------------------------------------------------
-    def _log(self, record: dict) -> None:
-        append_jsonl(self.rd.log, record)
-        if self.tb is not None:
-            step = record.get("frame", 0)
-            for k, v in record.items():
-                if isinstance(v, (int, float)) and k != "frame" and math.isfinite(v):
-                    self.tb.add_scalar(f"{record.get('type', 'log')}/{k}", v, step)
+    # -- shorthands of the state --------------------------------------------------------------------------------
+    @property
+    def est(self) -> torch.Tensor:
+        """(N, 4, 4) estimated c2w so far (NaN = not processed)."""
+        return self.state.est
 
-    def _open_tensorboard(self, resume: bool = False) -> None:
-        """TensorBoard writer (optional). On resume, events from the checkpointed frame on are purged, so that
-        the records logged again after the checkpoint do not show twice."""
-        if not self.cfg.output.tensorboard:
-            return
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-        except Exception:  # tensorboard not installed: optional
-            return
-        self.tb = SummaryWriter(str(self.rd.tensorboard), purge_step=self.next_frame if resume else None)
+    @property
+    def generator(self) -> torch.Generator:
+        return self.state.generator
 
-    def _keyframe_fraction(self) -> float:
-        return 0.005 if self.cfg.slam.keyframe_variant else self.cfg.slam.keyframe_fraction
+    @property
+    def store(self) -> KeyframeStore:
+        return self.state.store
 
-    def write_run_info(self, status: str) -> None:
-        intr = self.dataset.intrinsics
-        info = {
-            "status": status,
-            "dataset": {"kind": getattr(self.dataset, "name", "?"), "root": str(getattr(self.dataset, "root", "")),
-                        "frames": self.n_frames},
-            "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
-                           "width": intr.width, "height": intr.height},
-            "bounds": self.bounds.tolist(),
-            "bounds_source": ("estimated from the depth of the first frames with their ground-truth poses"
-                              if getattr(self.dataset, "bounds_estimated", False) else "dataset / config"),
-            "gt_mesh": str(self.dataset.gt_mesh) if getattr(self.dataset, "gt_mesh", None) else None,
-            "keyframes": list(self.store.frame_ids),
-            "timestamps": self.timestamps[: self.next_frame].tolist(),
-            "frames_processed": self.next_frame,
-            "versions": {"inrslam": inrslam.__version__, "torch": torch.__version__, "numpy": np.__version__,
-                         "python": platform.python_version()},
-            "device": str(self.device),
-            "threads": self.threads if self.threads is not None else torch.get_num_threads(),
-            "encoding": self.cfg.field.encoding,
-            "render": self.cfg.render.name,
-        }
-        write_json(self.rd.run_info, info)
+    # -- driving -------------------------------------------------------------------------------------------------
+    def process(self, i: int, frame: Frame | None = None) -> list[dict]:
+        """Process frame i (must be `state.next_frame`); returns its log records (init / track / map)."""
+        if i != self.state.next_frame:
+            raise ValueError(f"frame {i} processed out of order (next is {self.state.next_frame})")
+        self._records = []
+        self._process(i, self.dataset[i] if frame is None else frame)
+        self.state.next_frame = i + 1
+        return self._records
 
-    # -- checkpoint -----------------------------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        log = self.rd.log
-        return {
-            "next_frame": self.next_frame,
-            "model": self.model.state_dict(),
-            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
-            "store": self.store.state_dict(),
-            "est": self.est.cpu(),
-            "rel": self.rel.cpu(), "rel_kf": self.rel_kf,
-            "gt": self.gt,
-            "timestamps": self.timestamps,
-            "generator": self.generator.get_state(),
-            "track_ms": self.track_ms, "map_ms": self.map_ms, "init_ms": self.init_ms,
-            "proc_psnr": self.proc_psnr, "proc_depth_l1": self.proc_depth_l1, "events": self.events,
-            "gicp_kfs": list(self.gicp_kfs),
-            "log_bytes": log.stat().st_size if log.exists() else 0,
-            "wall_s": self.wall_s_before + time.perf_counter() - self._t_start,
-            "peak_mb": self._peak_memory_mb(),
-        }
+    def run(self, progress: Progress | None = None) -> "SlamSystem":
+        """Process every remaining frame in memory (nothing is written)."""
+        for i in range(self.state.next_frame, self.n_frames):
+            self.process(i)
+            if progress:
+                progress(i, self.n_frames, self.progress_info(i))
+        return self
 
-    def save_checkpoint(self) -> None:
-        with atomic_path(self.rd.checkpoint) as tmp:
-            torch.save(self.state_dict(), tmp)
-
-    def load_checkpoint(self) -> None:
-        path = self.rd.checkpoint
-        if not path.is_file():
-            raise ConfigError(f"{path}: no checkpoint to resume from")
-        st = torch.load(path, map_location="cpu", weights_only=False)
-        self.model.load_state_dict(st["model"])
-        for k, o in self.optimizers.items():
-            o.load_state_dict(st["optimizers"][k])
-        self.store.load_state_dict(st["store"])
-        self.est = st["est"].to(self.device)
-        if "rel" in st:  # checkpoints from before the relative trajectory lack it (those frames stay absolute)
-            self.rel, self.rel_kf = st["rel"].to(self.device), st["rel_kf"]
-        self.gt, self.timestamps = st["gt"], st["timestamps"]
-        self.generator.set_state(st["generator"])
-        self.track_ms, self.map_ms, self.init_ms = st["track_ms"], st["map_ms"], st["init_ms"]
-        self.proc_psnr, self.proc_depth_l1, self.events = st["proc_psnr"], st["proc_depth_l1"], st["events"]
-        self.next_frame = st["next_frame"]
-        self.gicp_kfs = list(st.get("gicp_kfs", [0]))
-        self.wall_s_before = st["wall_s"]
-        self.peak_mb_before = st["peak_mb"]
-        log = self.rd.log
-        if log.exists():  # drop records written after the checkpoint, so the resumed log equals an uninterrupted one
-            with open(log, "rb+") as f:
-                f.truncate(st["log_bytes"])
-
-    # -- the loop ----------------------------------------------------------------------------------------------
-    def run(self, resume: bool = False) -> Path:
-        """Process every frame, then write the trajectory, mesh and process metrics. Returns the run directory."""
-        self.out.mkdir(parents=True, exist_ok=True)
-        if resume:
-            self.load_checkpoint()
-        else:
-            self.rd.log.write_text("")
-        self.write_run_info("running")
-        self._open_tensorboard(resume)
-        self._t_start = time.perf_counter()
-        ck_every = self.cfg.slam.checkpoint_every
-        for i in range(self.next_frame, self.n_frames):
-            frame = self.dataset[i]
-            self._process(i, frame)
-            self.next_frame = i + 1
-            if self.cfg.slam.mesh_every and (i + 1) % self.cfg.slam.mesh_every == 0:
-                self._write_mesh(self.rd.mesh_at(i))
-            if ck_every and (i + 1) % ck_every == 0 and i + 1 < self.n_frames:
-                self.save_checkpoint()
-            if self.progress:
-                self.progress(i, self.n_frames, self._progress_info(i))
-        self.save_checkpoint()
-        wall_s = self.wall_s_before + time.perf_counter() - self._t_start
-        self._finish(wall_s)
-        if self.tb is not None:
-            self.tb.close()
-        return self.out
-
-    def _progress_info(self, i: int) -> dict:
+    def progress_info(self, i: int) -> dict:
         """What a progress display may show: last tracking time, and the trajectory so far with its GT."""
-        return {"track_ms": self.track_ms[-1] if self.track_ms else 0.0,
-                "est": self.est[: i + 1], "gt": self.gt[: i + 1]}
+        s = self.state
+        return {"track_ms": s.track_ms[-1] if s.track_ms else 0.0, "est": s.est[: i + 1], "gt": s.gt[: i + 1]}
+
+    def _log(self, record: dict) -> None:
+        self._records.append(record)
+
+    def _event(self, i: int, event: str) -> None:
+        self.state.events.append({"frame": i, "event": event})
 
     def _process(self, i: int, frame: Frame) -> None:
         cfg = self.cfg.slam
         ft = FrameTensors(frame, self.device)
-        self.timestamps[i] = frame.timestamp
+        self.state.timestamps[i] = frame.timestamp
         self.model.renderer.set_progress(i / max(self.n_frames - 1, 1))  # NeuS cosine annealing, if enabled
         if frame.pose_valid and np.all(np.isfinite(frame.c2w)):
-            self.gt[i] = frame.c2w
+            self.state.gt[i] = frame.c2w
         n_valid_depth = int((ft.depth > 0).sum())
         if i == 0:
             c2w0 = torch.as_tensor(frame.c2w if frame.pose_valid else np.eye(4), dtype=torch.float32,
                                    device=self.device)
             self.est[0] = c2w0
             t0 = time.perf_counter()
-            hist = initialise(self.model, self.optimizers,
+            hist = initialise(self.model, self.state.optimizers,
                               lambda n: (c2w0,) + ft.sample(n, self.generator), cfg.init_iters, cfg.init_pixels,
                               self.generator)
-            self.init_ms = (time.perf_counter() - t0) * 1e3
+            self.state.init_ms = (time.perf_counter() - t0) * 1e3
             self._log({"type": "init", "frame": 0, "iters": len(hist), "loss_first": hist[0] if hist else None,
-                       "loss_last": hist[-1] if hist else None, "init_ms": self.init_ms})
+                       "loss_last": hist[-1] if hist else None, "init_ms": self.state.init_ms})
             self._add_keyframe(0, ft)
             return
         prev = self.est[i - 1]
@@ -286,17 +169,17 @@ class SlamSystem:
             else:  # geometric tracking only
                 c2w, loss, fallback, iters = pred, float("nan"), None, 0
         track_ms = (time.perf_counter() - t0) * 1e3
-        self.track_ms.append(track_ms)
+        self.state.track_ms.append(track_ms)
         self.est[i] = c2w
         kf = self.store.frame_ids[-1]
-        self.rel[i] = torch.linalg.inv(self.est[kf]) @ c2w
-        self.rel_kf[i] = kf
+        self.state.rel[i] = torch.linalg.inv(self.est[kf]) @ c2w
+        self.state.rel_kf[i] = kf
         fallback = ",".join(f for f in (extra.pop("init_fallback", None), extra.pop("sdf_fallback", None), fallback)
                             if f)
         rec = {"type": "track", "frame": i, "loss": loss, "track_ms": track_ms, "iters": iters, **extra}
         if fallback:
             rec["fallback"] = fallback
-            self.events.append({"frame": i, "event": fallback})
+            self._event(i, fallback)
         self._log(rec)
         if i % cfg.map_every == 0:
             self._map(i, ft)
@@ -309,9 +192,9 @@ class SlamSystem:
         points = depth_points(frame.depth, frame.intrinsics, g)
         cur = PreparedCloud(points, g)
         if g.target is GicpTarget.LOCAL_MAP:
-            t_idx, target, base = self.gicp_kfs[-1], self._local_map(g), np.eye(4)
+            t_idx, target, base = self.state.gicp_kfs[-1], self._local_map(g), np.eye(4)
         else:
-            t_idx = i - 1 if g.target is GicpTarget.PREVIOUS else self.gicp_kfs[-1]
+            t_idx = i - 1 if g.target is GicpTarget.PREVIOUS else self.state.gicp_kfs[-1]
             if self._target_cloud is None or self._target_cloud[0] != t_idx:
                 t_frame = self.dataset[t_idx]
                 self._target_cloud = (t_idx, prepare_depth(t_frame.depth, t_frame.intrinsics, g))
@@ -323,9 +206,9 @@ class SlamSystem:
             self._target_cloud = (i, cur)
         else:
             from_kf = (reg.T_target_source if g.target is GicpTarget.KEYFRAME
-                       else np.linalg.inv(self.est[self.gicp_kfs[-1]].double().cpu().numpy()) @ c2w)
+                       else np.linalg.inv(self.est[self.state.gicp_kfs[-1]].double().cpu().numpy()) @ c2w)
             if not reg.ok or moved_beyond(from_kf, g.kf_dist, g.kf_angle) or reg.fitness < g.kf_fitness:
-                self.gicp_kfs.append(i)  # the target of the next frames (placed at its tracked pose)
+                self.state.gicp_kfs.append(i)  # the target of the next frames (placed at its tracked pose)
                 self._target_cloud = (i, cur)
                 if g.target is GicpTarget.LOCAL_MAP:
                     self._kf_points[i] = points  # no second read of this frame when the local map is rebuilt
@@ -334,9 +217,9 @@ class SlamSystem:
             return pred
         return torch.as_tensor(c2w, dtype=pred.dtype, device=pred.device)
 
-    def _local_map(self, g) -> PreparedCloud:
+    def _local_map(self, g: GicpConfig) -> PreparedCloud:
         """World-frame cloud of the last `g.local_map_keyframes` GICP keyframes at their current poses (cached)."""
-        ids = tuple(self.gicp_kfs[-g.local_map_keyframes:])
+        ids = tuple(self.state.gicp_kfs[-g.local_map_keyframes:])
         if self._local_target is None or self._local_target[0] != ids:
             pts = []
             for k in ids:
@@ -350,7 +233,7 @@ class SlamSystem:
             self._local_target = (ids, PreparedCloud(np.concatenate(pts), g))
         return self._local_target[1]
 
-    def _sdf_refine(self, ft: "FrameTensors", pred: torch.Tensor, rec: dict) -> torch.Tensor:
+    def _sdf_refine(self, ft: FrameTensors, pred: torch.Tensor, rec: dict) -> torch.Tensor:
         """Point-to-surface Gauss-Newton against the map from `pred` (slam.sdf_track)."""
         sc = self.cfg.slam.sdf_track
         valid = torch.nonzero(ft.depth > 0).squeeze(1)
@@ -368,10 +251,10 @@ class SlamSystem:
         cfg = self.cfg.slam
         kf_ids = list(self.store.frame_ids)
         t0 = time.perf_counter()
-        res = map_frame(self.model, self.optimizers, self.store, self.est[kf_ids], self.est[i],
+        res = map_frame(self.model, self.state.optimizers, self.store, self.est[kf_ids], self.est[i],
                         lambda n: ft.sample(n, self.generator), cfg, self.generator)
         map_ms = (time.perf_counter() - t0) * 1e3
-        self.map_ms.append(map_ms)
+        self.state.map_ms.append(map_ms)
         fallback = None
         if bool(torch.isfinite(res.kf_c2w).all()) and bool(torch.isfinite(res.cur_c2w).all()):
             self.est[kf_ids] = res.kf_c2w
@@ -381,9 +264,9 @@ class SlamSystem:
         if res.skipped:
             fallback = (fallback + "," if fallback else "") + f"nan_loss_x{res.skipped}"
         if fallback:
-            self.events.append({"frame": i, "event": fallback})
-        self.proc_psnr += res.psnr
-        self.proc_depth_l1 += [d for d in res.depth_l1 if math.isfinite(d)]
+            self._event(i, fallback)
+        self.state.proc_psnr += res.psnr
+        self.state.proc_depth_l1 += [d for d in res.depth_l1 if math.isfinite(d)]
         self._log({"type": "map", "frame": i, "map_ms": map_ms, "keyframes": len(kf_ids),
                    "loss": res.losses[-1] if res.losses else None,
                    "psnr": float(np.mean(res.psnr)) if res.psnr else None,
@@ -392,58 +275,39 @@ class SlamSystem:
         self._add_keyframe(i, ft)
 
     def _add_keyframe(self, i: int, ft: FrameTensors) -> None:
-        H, W = ft.intr.height, ft.intr.width
-        n = max(1, int(round(self._keyframe_fraction() * H * W)))
-        idx = torch.randperm(H * W, generator=self.generator)[:n].to(self.device)
-        dirs, rgb, depth = ft.rays(idx)
-        self.store.add(i, dirs, rgb, depth)
+        cfg = self.cfg.slam
+        fraction = 0.005 if cfg.keyframe_variant else cfg.keyframe_fraction
+        n = max(1, int(round(fraction * ft.intr.height * ft.intr.width)))
+        self.store.add(i, *ft.random_rays(n, self.generator))
 
-    # -- outputs -------------------------------------------------------------------------------------------------
-    def _write_mesh(self, path: Path) -> bool:
+    # -- results ---------------------------------------------------------------------------------------------------
+    def mesh(self) -> trimesh.Trimesh | None:
+        """Marching-cubes mesh of the current map (`mesh` config); None, and an `empty_mesh` event, if empty."""
         m = self.cfg.mesh
         mesh = extract_mesh(self.model.field, self.bounds, m.resolution, m.chunk, m.color)
         if mesh is None:
-            self.events.append({"frame": self.next_frame - 1, "event": "empty_mesh"})
-            return False
-        with atomic_path(path) as tmp:
-            mesh.export(tmp)
-        return True
+            self._event(self.state.next_frame - 1, "empty_mesh")
+        return mesh
 
-    def _peak_memory_mb(self) -> float:
-        """Peak memory of this run (max over resumed segments): CUDA allocator peak, or the process's max RSS."""
-        if self.device.type == "cuda":
-            now = torch.cuda.max_memory_allocated(self.device) / 2**20
-        else:
-            now = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
-        return max(now, self.peak_mb_before)
-
-    def _finish(self, wall_s: float) -> None:
+    def result(self) -> SlamResult:
+        """Trajectories, keyframes and process metrics of the frames processed so far."""
         from inrslam.fields import model_size_mb
 
-        est = self.est.double().cpu().numpy()
-        write_tum(self.rd.trajectory, self.timestamps, est, header="inrslam estimated c2w (OpenCV axes)")
-        write_tum(self.rd.trajectory_relative, self.timestamps,
-                  relative_trajectory(est, self.rel.double().cpu().numpy(), self.rel_kf, self.store.frame_ids),
-                  header="inrslam estimated c2w, non-keyframes relative to their refined keyframe (spec 7.6)")
-        if np.isfinite(self.gt).all(axis=(1, 2)).any():
-            write_tum(self.rd.trajectory_gt, self.timestamps, self.gt, header="ground-truth c2w (OpenCV axes)")
-        write_json(self.rd.keyframes, {"keyframes": list(self.store.frame_ids)})
-        if self.cfg.mesh.enabled:
-            self._write_mesh(self.rd.mesh)
+        s = self.state
+        est = s.est.double().cpu().numpy()
+        rel = relative_trajectory(est, s.rel.double().cpu().numpy(), s.rel_kf, s.store.frame_ids)
         metrics = {
             "frames": self.n_frames,
-            "track_ms_per_frame": float(np.mean(self.track_ms)) if self.track_ms else None,
-            "map_ms_per_call": float(np.mean(self.map_ms)) if self.map_ms else None,
-            "init_ms": self.init_ms,
-            "wall_time_s": wall_s,
+            "track_ms_per_frame": float(np.mean(s.track_ms)) if s.track_ms else None,
+            "map_ms_per_call": float(np.mean(s.map_ms)) if s.map_ms else None,
+            "init_ms": s.init_ms,
             "model_size_mb": model_size_mb(self.model.field),
             "model_size_with_optimizer_mb": model_size_mb(self.model.field, with_optimizer=True),
-            "peak_memory_mb": self._peak_memory_mb(),
-            "psnr_process_db": float(np.mean(self.proc_psnr)) if self.proc_psnr else None,
-            "depth_l1_process_m": float(np.mean(self.proc_depth_l1)) if self.proc_depth_l1 else None,
-            "fallbacks": len(self.events),
+            "psnr_process_db": float(np.mean(s.proc_psnr)) if s.proc_psnr else None,
+            "depth_l1_process_m": float(np.mean(s.proc_depth_l1)) if s.proc_depth_l1 else None,
+            "fallbacks": len(s.events),
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
         }
-        self.rd.write_metrics(metrics)
-        self.write_run_info("slam_done")
+        return SlamResult(est=est, relative=rel, gt=s.gt, timestamps=s.timestamps, keyframes=list(s.store.frame_ids),
+                          metrics=metrics)

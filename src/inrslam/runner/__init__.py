@@ -10,9 +10,11 @@ from inrslam.config.loader import dump_config, load_config
 from inrslam.errors import ConfigError
 from inrslam.io.atomic import write_text
 from inrslam.io.rundir import RunDir
+from inrslam.runner.writer import RunWriter
+from inrslam.slam.system import Progress, SlamSystem
 
 
-def run_slam(cfg, out_dir: str | os.PathLike, progress=None, overwrite: bool = False,
+def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, overwrite: bool = False,
              threads: int | None = None) -> Path:
     """Run SLAM with a resolved `RunConfig`, write the run directory `out_dir` and evaluate it.
 
@@ -25,7 +27,6 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress=None, overwrite: bool = F
     """
     from inrslam.datasets import open_dataset
     from inrslam.fields.kernels.threads import resolve_threads, thread_scope
-    from inrslam.slam.system import SlamSystem
 
     out = Path(out_dir)
     rd = RunDir(out)
@@ -36,18 +37,16 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress=None, overwrite: bool = F
     dataset = open_dataset(cfg.data)
     threads = resolve_threads(cfg.threads or threads or 0)
     with thread_scope(threads):
-        system = SlamSystem(cfg, dataset, out, progress=progress, threads=threads)
+        system = SlamSystem(cfg, dataset)
         out.mkdir(parents=True, exist_ok=True)
         write_text(rd.config, dump_config(cfg))  # the resolved config: `--config` reproduces the run
-        system.run(resume=False)
-        return _evaluate(system)
+        return _drive(system, RunWriter(system, rd, threads), resume=False, progress=progress)
 
 
-def resume_slam(run_dir: str | os.PathLike, progress=None) -> Path:
+def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) -> Path:
     """Continue an interrupted run from its last checkpoint, with the run's own resolved `config.yaml`."""
     from inrslam.datasets import open_dataset
     from inrslam.fields.kernels.threads import resolve_threads, thread_scope
-    from inrslam.slam.system import SlamSystem
 
     run_dir = Path(run_dir)
     rd = RunDir(run_dir)
@@ -58,9 +57,20 @@ def resume_slam(run_dir: str | os.PathLike, progress=None) -> Path:
     threads = _recorded_threads(run_dir) if not cfg.threads else None
     threads = threads or resolve_threads(cfg.threads)
     with thread_scope(threads):
-        system = SlamSystem(cfg, dataset, run_dir, progress=progress, threads=threads)
-        system.run(resume=True)
-        return _evaluate(system)
+        system = SlamSystem(cfg, dataset)
+        return _drive(system, RunWriter(system, rd, threads), resume=True, progress=progress)
+
+
+def _drive(system: SlamSystem, writer: RunWriter, resume: bool, progress: Progress | None) -> Path:
+    """Feed the loop every remaining frame, writing as it goes; then the final outputs and the evaluation."""
+    writer.start(resume)
+    for i in range(system.state.next_frame, system.n_frames):
+        writer.log(system.process(i))
+        writer.after_frame(i)
+        if progress:
+            progress(i, system.n_frames, system.progress_info(i))
+    metrics = writer.finish()
+    return _evaluate(system, writer, metrics)
 
 
 def _recorded_threads(run_dir: Path) -> int | None:
@@ -69,19 +79,22 @@ def _recorded_threads(run_dir: Path) -> int | None:
     return int(n) if isinstance(n, int) and n > 0 else None
 
 
-def _evaluate(system) -> Path:
-    """Held-out renders with the final map and estimated poses, then every result metric (docs/metrics.md)."""
+def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
+    """Held-out renders with the final map and estimated poses, the process metrics written with them, then every
+    result metric (docs/metrics.md)."""
     from inrslam.eval.heldout import heldout_metrics
     from inrslam.eval.run import evaluate_run
 
     ev = system.cfg.eval
-    out = system.out
+    rd = writer.rd
+    if ev.enabled and ev.heldout_every:
+        # frames between keyframes (offset by half the mapping period), rendered without jitter
+        render = lambda c2w, intr: system.model.render_image(c2w, intr, n_coarse=ev.heldout_samples)
+        metrics.update(heldout_metrics(render, system.dataset, system.est, ev.heldout_every, ev.heldout_max,
+                                       offset=system.cfg.slam.map_every // 2))
+    rd.write_metrics(metrics)
+    writer.write_run_info("slam_done")
     if ev.enabled:
-        if ev.heldout_every:
-            # frames between keyframes (offset by half the mapping period), rendered without jitter
-            render = lambda c2w, intr: system.model.render_image(c2w, intr, n_coarse=ev.heldout_samples)
-            RunDir(out).update_metrics(heldout_metrics(render, system.dataset, system.est, ev.heldout_every,
-                                                       ev.heldout_max, offset=system.cfg.slam.map_every // 2))
-        evaluate_run(out, ev)
-    system.write_run_info("complete")
-    return out
+        evaluate_run(rd.root, ev)
+    writer.write_run_info("complete")
+    return rd.root

@@ -1,0 +1,203 @@
+"""`RunWriter`: everything a SLAM run writes into its run directory (layout: `inrslam.io.rundir.RunDir`).
+
+The loop (`inrslam.slam.system.SlamSystem`) computes; the writer logs its records (`log.jsonl`, TensorBoard),
+keeps `run_info.json` current, saves and restores checkpoints, and writes the trajectories, keyframes, meshes and
+process metrics at the end. It also owns what only the process knows: wall time and peak memory over the resumed
+segments of a run.
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+import resource
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import trimesh
+
+import inrslam
+from inrslam.errors import RunError
+from inrslam.io.atomic import append_jsonl, atomic_path, write_json
+from inrslam.io.rundir import RunDir
+from inrslam.io.trajectory import write_tum
+from inrslam.runner.checkpoint import IDENTITY, load_checkpoint, save_checkpoint
+from inrslam.slam.system import SlamSystem
+
+
+class RunWriter:
+    """Writes the run directory `rd` of `system`.
+
+    Args:
+        threads: the torch / numba thread count the run holds (recorded: results are bit-identical only at one
+            count); None = whatever the process has set.
+    """
+
+    def __init__(self, system: SlamSystem, rd: RunDir, threads: int | None = None):
+        self.system = system
+        self.rd = rd
+        self.cfg = system.cfg
+        self.threads = threads
+        self.tb: Any = None  # TensorBoard SummaryWriter when enabled
+        self.wall_s_before = 0.0  # wall time of earlier (interrupted) segments of this run
+        self.peak_mb_before = 0.0  # peak memory of earlier segments
+        self._t_start = time.perf_counter()
+
+    # -- start ---------------------------------------------------------------------------------------------------
+    def start(self, resume: bool) -> None:
+        """Open the run: a fresh log, or the checkpointed state and the log cut back to it (so a resumed run's log
+        equals an uninterrupted one); remove temporary files a killed write left; mark the run as running."""
+        self.rd.root.mkdir(parents=True, exist_ok=True)
+        self.rd.remove_stale_temporaries()
+        if resume:
+            self._restore()
+        else:
+            self.rd.log.write_text("")
+        self.write_run_info("running")
+        self._open_tensorboard(resume)
+        self._t_start = time.perf_counter()
+
+    def _identity(self) -> dict:
+        """What a checkpoint must agree on to belong to this run."""
+        return {"frames": self.system.n_frames, "encoding": self.cfg.field.encoding, "render": self.cfg.render.name,
+                "seed": self.cfg.seed}
+
+    def _restore(self) -> None:
+        st = load_checkpoint(self.rd.checkpoint, self._identity())
+        try:
+            self.system.state.load_state_dict(st)
+        except (KeyError, RuntimeError, ValueError) as e:  # e.g. parameter shapes of another field configuration
+            reason = str(e).splitlines()[0][:160]
+            raise RunError(f"{self.rd.checkpoint}: the checkpoint does not fit this run's config.yaml ({reason}): "
+                           f"start the run again with --overwrite") from None
+        self.wall_s_before, self.peak_mb_before = st["wall_s"], st["peak_mb"]
+        log = self.rd.log
+        if log.exists():
+            with open(log, "rb+") as f:
+                f.truncate(st["log_bytes"])
+
+    def _open_tensorboard(self, resume: bool) -> None:
+        """TensorBoard writer (optional). On resume, events from the checkpointed frame on are purged, so that
+        the records logged again after the checkpoint do not show twice."""
+        if not self.cfg.output.tensorboard:
+            return
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except Exception:  # tensorboard not installed: optional
+            return
+        self.tb = SummaryWriter(str(self.rd.tensorboard),
+                                purge_step=self.system.state.next_frame if resume else None)
+
+    # -- during the run ------------------------------------------------------------------------------------------
+    def log(self, records: list[dict]) -> None:
+        """Append records to log.jsonl (flushed each) and their finite numbers to TensorBoard."""
+        for record in records:
+            append_jsonl(self.rd.log, record)
+            if self.tb is not None:
+                step = record.get("frame", 0)
+                for k, v in record.items():
+                    if isinstance(v, (int, float)) and k != "frame" and math.isfinite(v):
+                        self.tb.add_scalar(f"{record.get('type', 'log')}/{k}", v, step)
+
+    def after_frame(self, i: int) -> None:
+        """Intermediate mesh (slam.mesh_every) and checkpoint (slam.checkpoint_every) after frame i."""
+        s = self.cfg.slam
+        n = self.system.n_frames
+        if s.mesh_every and (i + 1) % s.mesh_every == 0:
+            self.write_mesh(self.system.mesh(), self.rd.mesh_at(i))
+        if s.checkpoint_every and (i + 1) % s.checkpoint_every == 0 and i + 1 < n:
+            self.checkpoint()
+
+    def checkpoint(self) -> None:
+        """Save the loop's state with this process's bookkeeping (atomic; verified when loaded)."""
+        log = self.rd.log
+        save_checkpoint(self.rd.checkpoint, {
+            **self.system.state.state_dict(),
+            "log_bytes": log.stat().st_size if log.exists() else 0,
+            "wall_s": self.wall_s(),
+            "peak_mb": self.peak_memory_mb(),
+            IDENTITY: self._identity(),
+        })
+
+    def wall_s(self) -> float:
+        """Wall time of the run over all its segments, seconds."""
+        return self.wall_s_before + time.perf_counter() - self._t_start
+
+    def peak_memory_mb(self) -> float:
+        """Peak memory of this run (max over resumed segments): CUDA allocator peak, or the process's max RSS."""
+        dev = self.system.device
+        if dev.type == "cuda":
+            now = torch.cuda.max_memory_allocated(dev) / 2**20
+        else:
+            now = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+        return max(now, self.peak_mb_before)
+
+    def write_mesh(self, mesh: trimesh.Trimesh | None, path: Path) -> None:
+        if mesh is not None:
+            with atomic_path(path) as tmp:
+                mesh.export(tmp)
+
+    def write_run_info(self, status: str) -> None:
+        """run_info.json: status, dataset (absolute paths), intrinsics, bounds, keyframes, versions, device, threads."""
+        sysm, ds = self.system, self.system.dataset
+        st = sysm.state
+        intr = ds.intrinsics
+        root = getattr(ds, "root", None)
+        gt_mesh = getattr(ds, "gt_mesh", None)
+        info = {
+            "status": status,
+            "dataset": {"kind": getattr(ds, "name", "?"), "root": _absolute(root) if root else "",
+                        "frames": sysm.n_frames},
+            "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
+                           "width": intr.width, "height": intr.height},
+            "bounds": sysm.bounds.tolist(),
+            "bounds_source": ("estimated from the depth of the first frames with their ground-truth poses"
+                              if getattr(ds, "bounds_estimated", False) else "dataset / config"),
+            "gt_mesh": _absolute(gt_mesh) if gt_mesh else None,
+            "keyframes": list(st.store.frame_ids),
+            "timestamps": st.timestamps[: st.next_frame].tolist(),
+            "frames_processed": st.next_frame,
+            "versions": {"inrslam": inrslam.__version__, "torch": torch.__version__, "numpy": np.__version__,
+                         "python": platform.python_version()},
+            "device": str(sysm.device),
+            "threads": self.threads if self.threads is not None else torch.get_num_threads(),
+            "encoding": self.cfg.field.encoding,
+            "render": self.cfg.render.name,
+        }
+        write_json(self.rd.run_info, info)
+
+    # -- end -------------------------------------------------------------------------------------------------------
+    def finish(self) -> dict:
+        """Final checkpoint, trajectories, keyframes.json and mesh.ply; returns the process metrics (the caller
+        adds what it evaluates and writes metrics.json once)."""
+        self.checkpoint()
+        wall_s = self.wall_s()
+        rd = self.rd
+        if self.cfg.mesh.enabled:  # first: an empty mesh is an event the metrics count
+            self.write_mesh(self.system.mesh(), rd.mesh)
+        res = self.system.result()
+        write_tum(rd.trajectory, res.timestamps, res.est, header="inrslam estimated c2w (OpenCV axes)")
+        write_tum(rd.trajectory_relative, res.timestamps, res.relative,
+                  header="inrslam estimated c2w, non-keyframes relative to their refined keyframe (spec 7.6)")
+        if np.isfinite(res.gt).all(axis=(1, 2)).any():
+            write_tum(rd.trajectory_gt, res.timestamps, res.gt, header="ground-truth c2w (OpenCV axes)")
+        write_json(rd.keyframes, {"keyframes": res.keyframes})
+        if self.tb is not None:
+            self.tb.close()
+            self.tb = None
+        process = {"wall_time_s": wall_s, "peak_memory_mb": self.peak_memory_mb()}
+        return {**dict.fromkeys(METRIC_ORDER), **res.metrics, **process}  # dict order: METRIC_ORDER first
+
+
+# key order of the process metrics in metrics.json (docs/metrics.md)
+METRIC_ORDER = ("frames", "track_ms_per_frame", "map_ms_per_call", "init_ms", "wall_time_s", "model_size_mb",
+                "model_size_with_optimizer_mb", "peak_memory_mb", "psnr_process_db", "depth_l1_process_m",
+                "fallbacks", "encoding", "render")
+
+
+def _absolute(p: Any) -> str:
+    """`p` as an absolute path (run directories may be read from another working directory)."""
+    return str(Path(p).absolute())

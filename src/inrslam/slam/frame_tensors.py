@@ -1,0 +1,43 @@
+"""One RGB-D frame on the device, with the ray and pixel-sampling helpers tracking, mapping and keyframes use."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from inrslam.data.frame import Frame
+from inrslam.geometry.camera import pixel_directions
+from inrslam.rendering.sampling import sample_pixels
+
+
+class FrameTensors:
+    """`frame` as flat tensors on `device`: rgb (H*W, 3) in [0, 1], depth (H*W,) metres (0 = none)."""
+
+    def __init__(self, frame: Frame, device: torch.device):
+        self.frame = frame
+        self.intr = frame.intrinsics
+        self.rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb, dtype=np.float32)).to(device).reshape(-1, 3)
+        self.depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32)).to(device).reshape(-1)
+        self.device = device
+
+    def rays(self, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(n,) flat pixel indices -> dirs_cam (n, 3) with z = 1, rgb (n, 3), depth (n,)."""
+        W = self.intr.width
+        u, v = (idx % W).float(), torch.div(idx, W, rounding_mode="floor").float()
+        return pixel_directions(self.intr, u, v), self.rgb[idx], self.depth[idx]
+
+    def sample(self, n: int, generator: torch.Generator, edge: int = 0) -> tuple[Tensor, Tensor, Tensor]:
+        """n distinct pixels uniformly inside an `edge`-pixel border (no border if it would leave none)."""
+        H, W = self.intr.height, self.intr.width
+        if H - 2 * edge <= 0 or W - 2 * edge <= 0:
+            edge = 0
+        n = min(n, (H - 2 * edge) * (W - 2 * edge))
+        u, v = sample_pixels(H, W, n, edge, generator, self.device)
+        return self.rays(v * W + u)
+
+    def random_rays(self, n: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+        """n distinct pixels drawn from a full random permutation (the keyframe ray store's choice)."""
+        H, W = self.intr.height, self.intr.width
+        idx = torch.randperm(H * W, generator=generator)[:n].to(self.device)
+        return self.rays(idx)

@@ -1,0 +1,122 @@
+"""The SLAM loop's state, the loop without I/O, and verified checkpoints (runner/checkpoint.py)."""
+
+from __future__ import annotations
+
+import os
+import struct
+
+import numpy as np
+import pytest
+import torch
+
+from inrslam.config import load_config
+from inrslam.datasets import open_dataset
+from inrslam.errors import RunError
+from inrslam.io.rundir import RunDir
+from inrslam.runner import resume_slam, run_slam
+from inrslam.runner.checkpoint import load_checkpoint, save_checkpoint
+from inrslam.slam.system import SlamSystem
+
+TINY = ["data.max_frames=4", "slam.init_iters=10", "slam.track_iters=3", "slam.map_iters=2", "slam.map_every=2",
+        "slam.checkpoint_every=2", "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false"]
+
+
+def tiny_cfg(extra=()):
+    return load_config(preset="quick", overrides=TINY + list(extra))
+
+
+def test_the_loop_writes_nothing_and_returns_its_records(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    cfg = tiny_cfg()
+    system = SlamSystem(cfg, open_dataset(cfg.data))
+    kinds = [[r["type"] for r in system.process(i)] for i in range(len(system.dataset))]
+    assert kinds == [["init"], ["track"], ["track", "map"], ["track"]]
+    assert list(tmp_path.iterdir()) == []  # nothing written anywhere the loop could reach relative to the cwd
+    res = system.result()
+    assert res.est.shape == (4, 4, 4) and np.isfinite(res.est).all()
+    assert res.keyframes == [0, 2] and res.metrics["frames"] == 4
+    with pytest.raises(ValueError, match="out of order"):
+        system.process(1)
+
+
+def test_state_round_trip_restores_every_field():
+    cfg = tiny_cfg()
+    a = SlamSystem(cfg, open_dataset(cfg.data))
+    for i in range(3):
+        a.process(i)
+    saved = a.state.state_dict()
+    b = SlamSystem(cfg, open_dataset(cfg.data))
+    b.state.load_state_dict(saved)
+    assert b.state.next_frame == 3 and b.state.store.frame_ids == [0, 2]
+    assert torch.equal(torch.nan_to_num(a.est), torch.nan_to_num(b.est))
+    for (ka, va), (kb, vb) in zip(a.model.state_dict().items(), b.model.state_dict().items()):
+        assert ka == kb and torch.equal(va, vb)
+    assert torch.equal(a.generator.get_state(), b.generator.get_state())
+    # both continue identically from there
+    assert [r["loss"] for r in a.process(3)] == [r["loss"] for r in b.process(3)]
+    with pytest.raises(KeyError, match="lacks est"):
+        b.state.load_state_dict({k: v for k, v in saved.items() if k != "est"})
+
+
+def _state():
+    return {"next_frame": 3, "est": torch.full((5, 4, 4), 1.2345), "gt": np.eye(4)[None].repeat(5, 0),
+            "model": {"w": torch.arange(8, dtype=torch.float64)}, "events": [{"frame": 1, "event": "x"}]}
+
+
+def test_checkpoint_round_trip_and_bit_flip_is_caught(tmp_path):
+    path = tmp_path / "checkpoints" / "latest.pt"
+    save_checkpoint(path, _state())
+    st = load_checkpoint(path)
+    assert st["next_frame"] == 3 and torch.equal(st["est"], _state()["est"])
+    raw = bytearray(path.read_bytes())
+    at = raw.find(struct.pack("<f", 1.2345))
+    assert at > 0
+    raw[at] ^= 0x10  # one flipped bit inside the stored tensor
+    path.write_bytes(bytes(raw))
+    with pytest.raises(RunError, match=r"corrupt checkpoint \(checksum mismatch in est\)"):
+        load_checkpoint(path)
+
+
+@pytest.mark.parametrize("damage,message", [
+    (lambda p: p.write_bytes(b""), "empty"),
+    (lambda p: p.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 2]), "truncated or corrupt"),
+    (lambda p: torch.save({"a": 1}, p), "not an inrslam checkpoint"),
+    (lambda p: p.unlink(), "no checkpoint to resume from"),
+])
+def test_unusable_checkpoints_are_one_line_errors(tmp_path, damage, message):
+    path = tmp_path / "latest.pt"
+    save_checkpoint(path, _state())
+    damage(path)
+    with pytest.raises(RunError, match=message) as e:
+        load_checkpoint(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value) and "--overwrite" in str(e.value)
+
+
+def test_a_full_disk_keeps_the_previous_checkpoint_and_says_so(tmp_path, monkeypatch):
+    path = tmp_path / "checkpoints" / "latest.pt"
+    save_checkpoint(path, _state())
+    before = path.read_bytes()
+
+    def full(obj, f):
+        open(f, "wb").write(b"partial")
+        raise RuntimeError("[enforce fail at inline_container.cc:664] . unexpected pos 64 vs 0")
+
+    monkeypatch.setattr(torch, "save", full)
+    with pytest.raises(RunError, match="no space left on device") as e:
+        save_checkpoint(path, _state())
+    assert "previous checkpoint is kept" in str(e.value) and "MB" in str(e.value)
+    assert path.read_bytes() == before
+    assert [p.name for p in path.parent.iterdir()] == ["latest.pt"]  # no temporary file left behind
+
+
+def test_resume_rejects_another_runs_checkpoint_and_removes_stale_temporaries(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    run_slam(tiny_cfg(), a)
+    run_slam(tiny_cfg(["field.encoding=hash"]), b)
+    stale = RunDir(a).checkpoints / ".latest.pt.k1ll3d.tmp.pt"
+    stale.write_bytes(os.urandom(1024))  # what kill -9 during a checkpoint write leaves
+    resume_slam(a)
+    assert not stale.exists()
+    os.replace(RunDir(b).checkpoint, RunDir(a).checkpoint)
+    with pytest.raises(RunError, match="belongs to another run .*encoding 'hash' in the checkpoint, 'dense'"):
+        resume_slam(a)
