@@ -1,4 +1,4 @@
-"""Fused CPU kernels (numba, ``parallel=True``) for multilinear table lookups; see ``spec.py`` for the maths.
+"""Fused CPU kernels (numba, ``parallel=True``) for multilinear table lookups; see ``layout.py`` for the maths.
 
 Layout: points ``xn (N,3)`` normalised to [0,1] (float32 or float64), table ``T (M,F)``, output ``(N,E,F)``.
 Race freedom: the forward and the input backward parallelise over points (each point owns its output row);
@@ -269,7 +269,7 @@ def lazy_adam_rows(p, m, v, rows, g, step_size, beta1, beta2, eps, bc2_sqrt):
 
 @njit(inline="always", cache=True)
 def _axis_lean(p, scale, offset, lo, hi, res):
-    """``_axis`` with its two clamps merged into one of u to [lo, hi] (``InterpSpec.lo/hi``); same results."""
+    """``_axis`` with its two clamps merged into one of u to [lo, hi] (``TableLayout.lo/hi``); same results."""
     u = p * scale + offset
     du = scale
     if not u >= lo:  # (NaN lands here: a defined row, never an out-of-range one)

@@ -25,8 +25,9 @@ PRIMES = (1, 2654435761, 805459861)
 
 
 @dataclass(eq=False)
-class InterpSpec:
-    """Metadata of E entries over one (M, F) table (numpy arrays, all of leading size E)."""
+class TableLayout:
+    """Layout of E lookup entries over one (M, F) table: which rows each owns and how a point maps to them (numpy
+    arrays, all of leading size E)."""
 
     ndim: np.ndarray  # (E,) int64, D ∈ {1,2,3}
     axes: np.ndarray  # (E,3) int64, looked-up axes of p̂ (unused slots 0)
@@ -43,7 +44,7 @@ class InterpSpec:
 
     def __getstate__(self) -> dict:
         """Copies and pickles carry the dataclass fields only: the scratch arrays, buffer pools and caches that the
-        kernels keep as extra attributes on the spec are rebuilt on first use."""
+        kernels keep as extra attributes on the layout are rebuilt on first use."""
         fields = {f.name for f in dataclasses.fields(self)}
         return {k: v for k, v in self.__dict__.items() if k in fields} | {"_torch_cache": {}}
 
@@ -56,7 +57,7 @@ class InterpSpec:
         return int(self.row_off[-1] + self.rows[-1]) if self.n_entries else 0
 
     @staticmethod
-    def build(entries: list[dict]) -> "InterpSpec":
+    def build(entries: list[dict]) -> "TableLayout":
         """Pack entries given as dicts with keys axes (list), res (list), scale, offset (lists), rows (int|None),
         hashed (bool). ``rows=None`` means exactly prod(res) rows (direct indexing)."""
         E = len(entries)
@@ -101,7 +102,7 @@ class InterpSpec:
         # the same as clamping u to [offset, scale + offset] (0·scale and 1·scale are exact)
         lo = np.maximum(offset, 0.0)
         hi = np.minimum(scale + offset, res - 1.0)
-        return InterpSpec(ndim, axes, res, scale, offset, stride, hashed, rows, row_off, lo, hi)
+        return TableLayout(ndim, axes, res, scale, offset, stride, hashed, rows, row_off, lo, hi)
 
     def torch_arrays(self, device: torch.device) -> dict[str, torch.Tensor]:
         """The metadata as tensors on ``device`` (cached), for the reference path."""
