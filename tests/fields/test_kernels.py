@@ -77,7 +77,8 @@ def test_sparse_grad_has_unique_touched_rows():
 def test_merged_clamp_equals_two_clamps(name):
     """The trilinear kernels clamp u once to [lo, hi] instead of p̂ to [0,1] and then u to [0, R−1]: the same
     corner, weight and du/dp̂ for points inside, on and outside the box (float32 inputs, as the kernels see them)."""
-    from inrslam.fields.kernels.numba_interp import _axis, _axis_lean
+    from inrslam.fields.kernels.generic import _axis
+    from inrslam.fields.kernels.trilinear import _axis_lean
 
     layout = TableLayout.build(entry_sets()[name])
     rng = np.random.default_rng(0)
@@ -209,7 +210,7 @@ def test_nan_points_get_nan_features_and_no_gradient(backend, name):
 def test_kernels_called_directly_with_nan_stay_in_bounds(name):
     """The raw numba kernels map a NaN coordinate to the box's low face (a defined row) instead of indexing out of
     range (``multilinear`` never passes them one)."""
-    from inrslam.fields.kernels import numba_interp as nk
+    from inrslam.fields.kernels import generic, trilinear
     from inrslam.fields.kernels.function import _is_trilinear, _meta, _tri_meta
 
     layout, table, x = _case(name)
@@ -220,12 +221,13 @@ def test_kernels_called_directly_with_nan_stay_in_bounds(name):
     expected = interp_torch(low, table, layout)
     out = np.zeros((x.shape[0], layout.n_entries, tab.shape[1]), np.float32)
     if _is_trilinear(layout):
-        nk.tri_forward(xn, tab, *_tri_meta(layout), out, np.empty((0, layout.n_entries, tab.shape[1], 3), np.float32))
+        no_jac = np.empty((0, layout.n_entries, tab.shape[1], 3), np.float32)
+        trilinear.tri_forward(xn, tab, *_tri_meta(layout), out, no_jac)
         grad = np.zeros_like(tab)
-        nk.tri_backward_table_dense(xn, np.ones_like(out), *_tri_meta(layout), grad)
+        trilinear.tri_backward_table_dense(xn, np.ones_like(out), *_tri_meta(layout), grad)
         assert np.isfinite(grad).all()
     else:
-        nk.interp_forward(xn, tab, *_meta(layout), out)
+        generic.interp_forward(xn, tab, *_meta(layout), out)
     torch.testing.assert_close(torch.from_numpy(out), expected, rtol=1e-5, atol=1e-5)
 
 

@@ -146,7 +146,8 @@ def test_gradient_accumulated_over_two_backward_passes_is_deduplicated():
     model(x2, "numba").square().sum().backward()
     twin(torch.cat([x1, x2]), "numba").square().sum().backward()  # one pass over both: unique rows
     g = model.table.grad
-    assert not unique_rows_of(model.layout, g._indices()[0], g._values())  # a sum of two gradients: not the last fused one
+    # a sum of two gradients: not the last fused one
+    assert not unique_rows_of(model.layout, g._indices()[0], g._values())
     torch.testing.assert_close(g.to_dense(), twin.table.grad.to_dense(), rtol=1e-5, atol=1e-6)
     opt.step()
     twin_opt.step()

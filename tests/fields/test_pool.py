@@ -51,7 +51,8 @@ def test_kept_sparse_gradient_is_not_overwritten_by_the_next_backward():
     x1, x2 = torch.rand(300, 3, generator=g), torch.rand(300, 3, generator=g)
     multilinear(x1, table, layout, "numba", sparse=True).sum().backward()
     kept = table.grad
-    assert unique_rows_of(layout, kept._indices()[0], kept._values())  # straight from the fused backward: the optimizer trusts its rows
+    # straight from the fused backward: the optimizer trusts its rows
+    assert unique_rows_of(layout, kept._indices()[0], kept._values())
     expected = kept.to_dense().clone()
     table.grad = None
     multilinear(x2, table, layout, "numba", sparse=True).square().sum().backward()

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from inrslam.fields.kernels import numba_interp as nk
+from inrslam.fields.kernels import sparse_rows
 from inrslam.fields.kernels.function import unique_rows_of, workspace
 
 
@@ -66,7 +66,7 @@ class LazyAdam(torch.optim.Optimizer):
             vals2 = vals.reshape(vals.shape[0], -1)
             out_rows = np.empty(rows.shape[0], np.int64)
             out_vals = np.zeros(vals2.shape, dtype=vals2.numpy().dtype)
-            k = nk.unique_rows_sum(rows.numpy(), vals2.numpy(), self._slot(p), out_rows, out_vals)
+            k = sparse_rows.unique_rows_sum(rows.numpy(), vals2.numpy(), self._slot(p), out_rows, out_vals)
             return torch.from_numpy(out_rows[:k]), torch.from_numpy(out_vals[:k]).reshape((k,) + vals.shape[1:])
         rows = torch.nonzero(g.reshape(g.shape[0], -1).ne(0).any(1))[:, 0]
         return rows, g[rows]
@@ -103,7 +103,7 @@ class LazyAdam(torch.optim.Optimizer):
                     continue
                 if p.device.type == "cpu" and p.is_contiguous() and m.is_contiguous() and v.is_contiguous():
                     M = p.shape[0]
-                    nk.lazy_adam_rows(p.detach().reshape(M, -1).numpy(), m.reshape(M, -1).numpy(),
+                    sparse_rows.lazy_adam_rows(p.detach().reshape(M, -1).numpy(), m.reshape(M, -1).numpy(),
                                       v.reshape(M, -1).numpy(), rows.numpy(),
                                       vals.reshape(rows.shape[0], -1).contiguous().numpy(), step_size, b1, b2, eps,
                                       bc2_sqrt)

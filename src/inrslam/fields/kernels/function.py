@@ -8,9 +8,9 @@ import numba
 import numpy as np
 import torch
 
-from inrslam.fields.kernels import numba_interp as nk
-from inrslam.fields.kernels.pool import BufferPool
+from inrslam.fields.kernels import generic, sparse_rows, trilinear
 from inrslam.fields.kernels.layout import TableLayout
+from inrslam.fields.kernels.pool import BufferPool
 from inrslam.fields.kernels.torch_interp import interp_torch
 
 #: Tables with more rows than this get a sparse (COO, unique rows) gradient from the fused backward;
@@ -63,7 +63,8 @@ def _sparse_workspace(layout: TableLayout, n_points: int, n_feat: int, dtype, pa
     backward pays neither a large allocation nor its page faults."""
     blk = 1 << PART_LOG2
     part_rows = layout.rows if parts == 1 else -(-layout.rows // blk) // parts * blk + blk
-    caps = np.tile(np.minimum(n_points * (1 << layout.ndim), np.minimum(part_rows, layout.rows)), parts).astype(np.int64)
+    caps = np.minimum(n_points * (1 << layout.ndim), np.minimum(part_rows, layout.rows))
+    caps = np.tile(caps, parts).astype(np.int64)
     cap_off = np.zeros_like(caps)
     cap_off[1:] = np.cumsum(caps)[:-1]
     need = int(caps.sum())
@@ -77,8 +78,8 @@ def _sparse_workspace(layout: TableLayout, n_points: int, n_feat: int, dtype, pa
 
 
 def _meta(layout: TableLayout):
-    return (layout.ndim, layout.axes, layout.res, layout.scale, layout.offset, layout.stride, layout.hashed, layout.rows,
-            layout.row_off)
+    return (layout.ndim, layout.axes, layout.res, layout.scale, layout.offset, layout.stride, layout.hashed,
+            layout.rows, layout.row_off)
 
 
 def _is_trilinear(layout: TableLayout) -> bool:
@@ -91,7 +92,8 @@ def _is_trilinear(layout: TableLayout) -> bool:
 
 
 def _tri_meta(layout: TableLayout):
-    return (layout.res, layout.scale, layout.offset, layout.lo, layout.hi, layout.stride, layout.hashed, layout.rows, layout.row_off)
+    return (layout.res, layout.scale, layout.offset, layout.lo, layout.hi, layout.stride, layout.hashed,
+            layout.rows, layout.row_off)
 
 
 def _grad_pool(layout: TableLayout) -> BufferPool:
@@ -138,7 +140,7 @@ def _level_major(g: np.ndarray, layout: TableLayout) -> np.ndarray:
     if ws is None or ws.dtype != g.dtype or ws.size < g.size:
         ws = layout._gT = np.empty(g.size, g.dtype)
     gT = ws[: g.size].reshape(g.shape[1], g.shape[0], g.shape[2])
-    nk.level_major(g, gT)
+    trilinear.level_major(g, gT)
     return gT
 
 
@@ -148,30 +150,31 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, 
     if not sparse:
         grad = torch.zeros(M, F, dtype=dtype)
         if _is_trilinear(layout):
-            nk.tri_backward_table_dense(xn, g, *_tri_meta(layout), grad.numpy())
+            trilinear.tri_backward_table_dense(xn, g, *_tri_meta(layout), grad.numpy())
         else:
-            nk.interp_backward_table_dense(xn, g, *_meta(layout), grad.numpy())
+            generic.interp_backward_table_dense(xn, g, *_meta(layout), grad.numpy())
         return grad
     if _is_trilinear(layout) and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
         acc, mark_off, mark = _accumulator(layout, F, g.dtype)
         gT = _level_major(g, layout)  # (E,N,F): each level reads its gradient contiguously
         counts = np.zeros(layout.n_entries, np.int64)
-        nk.tri_backward_table_acc(xn, gT, *_tri_meta(layout), mark_off, acc, mark, counts)
+        trilinear.tri_backward_table_acc(xn, gT, *_tri_meta(layout), mark_off, acc, mark, counts)
         return _sparse_grad(layout, shape, g.dtype, counts,
-                            lambda rows, vals: nk.drain_marked_rows(layout.rows, layout.row_off, mark_off, counts, acc,
-                                                                    mark, rows, vals))
+                            lambda rows, vals: sparse_rows.drain_marked_rows(layout.rows, layout.row_off, mark_off,
+                                                                             counts, acc, mark, rows, vals))
     if _is_trilinear(layout):
         parts = _row_parts(layout)
         cap_off, out_rows, out_vals = _sparse_workspace(layout, xn.shape[0], F, g.dtype, parts)
         counts = np.zeros(layout.n_entries * parts, np.int64)
-        nk.tri_backward_table_sparse(xn, g, *_tri_meta(layout), workspace(layout), parts, PART_LOG2, cap_off, out_rows,
-                                     out_vals, counts)
+        trilinear.tri_backward_table_sparse(xn, g, *_tri_meta(layout), workspace(layout), parts, PART_LOG2, cap_off,
+                                            out_rows, out_vals, counts)
     else:
         cap_off, out_rows, out_vals = _sparse_workspace(layout, xn.shape[0], F, g.dtype)
         counts = np.zeros(layout.n_entries, np.int64)
-        nk.interp_backward_table_sparse(xn, g, *_meta(layout), workspace(layout), cap_off, out_rows, out_vals, counts)
+        generic.interp_backward_table_sparse(xn, g, *_meta(layout), workspace(layout), cap_off, out_rows, out_vals,
+                                             counts)
     return _sparse_grad(layout, shape, g.dtype, counts,
-                        lambda rows, vals: nk.compact_entries(cap_off, counts, out_rows, out_vals, rows, vals))
+                        lambda rows, vals: sparse_rows.compact_entries(cap_off, counts, out_rows, out_vals, rows, vals))
 
 
 class MultilinearFn(torch.autograd.Function):
@@ -190,11 +193,11 @@ class MultilinearFn(torch.autograd.Function):
             # one lookup for both: keep ∂out/∂xn for the input backward (an empty array: no Jacobian)
             jac = np.empty((xn.shape[0] if ctx.needs_input_grad[0] else 0, layout.n_entries, tab.shape[1], 3),
                            dtype=xn_np.dtype)
-            nk.tri_forward(xn_np, tab.numpy(), *_tri_meta(layout), out.numpy(), jac)
+            trilinear.tri_forward(xn_np, tab.numpy(), *_tri_meta(layout), out.numpy(), jac)
             ctx.jac = jac if ctx.needs_input_grad[0] else None
         else:
             out = torch.zeros(xn.shape[0], layout.n_entries, tab.shape[1], dtype=tab.dtype)
-            nk.interp_forward(xn_np, tab.numpy(), *_meta(layout), out.numpy())
+            generic.interp_forward(xn_np, tab.numpy(), *_meta(layout), out.numpy())
         ctx.save_for_backward(xn, table)
         ctx.layout = layout
         ctx.sparse = sparse
@@ -218,9 +221,9 @@ class MultilinearFn(torch.autograd.Function):
         if need_x:
             gx64 = np.zeros((xn.shape[0], 3), np.float64)
             if ctx.jac is not None:  # trilinear: the forward kept the Jacobian (it knew the input grad was needed)
-                nk.tri_backward_x_jac(ctx.jac, g_np, gx64)
+                trilinear.tri_backward_x_jac(ctx.jac, g_np, gx64)
             else:
-                nk.interp_backward_x(xn_np, table.detach().numpy(), g_np, *_meta(layout), gx64)
+                generic.interp_backward_x(xn_np, table.detach().numpy(), g_np, *_meta(layout), gx64)
             gx = torch.from_numpy(gx64).to(xn.dtype)
         if need_t:
             gt = table_grad_numba(xn_np, g_np, layout, tuple(table.shape), table.dtype, ctx.sparse)
