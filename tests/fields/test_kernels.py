@@ -111,7 +111,7 @@ def test_row_partitioned_sparse_backward_matches_reference(monkeypatch, name, pa
     assert rows.unique().numel() == rows.numel()
     _, _, gt_ref = _grads("torch", layout, table, x, cot)
     torch.testing.assert_close(t.grad.to_dense(), gt_ref, rtol=1e-5, atol=1e-5)
-    assert np.all(layout._slot == -1)  # the slot scratch is restored for the next call
+    assert np.all(layout.workspace.slots == -1)  # the slot scratch is restored for the next call
     # each row is summed over the points in order whatever the split: bitwise the same gradient as one part
     monkeypatch.setattr(function, "_row_parts", lambda layout: 1)
     t1 = table.clone().requires_grad_()
@@ -211,7 +211,7 @@ def test_kernels_called_directly_with_nan_stay_in_bounds(name):
     """The raw numba kernels map a NaN coordinate to the box's low face (a defined row) instead of indexing out of
     range (``multilinear`` never passes them one)."""
     from inrslam.fields.kernels import generic, trilinear
-    from inrslam.fields.kernels.function import _is_trilinear, _meta, _tri_meta
+    from inrslam.fields.kernels.function import _meta, _tri_meta
 
     layout, table, x = _case(name)
     x[:, 0] = float("nan")
@@ -220,7 +220,7 @@ def test_kernels_called_directly_with_nan_stay_in_bounds(name):
     low[:, 0] = 0.0
     expected = interp_torch(low, table, layout)
     out = np.zeros((x.shape[0], layout.n_entries, tab.shape[1]), np.float32)
-    if _is_trilinear(layout):
+    if layout.trilinear:
         no_jac = np.empty((0, layout.n_entries, tab.shape[1], 3), np.float32)
         trilinear.tri_forward(xn, tab, *_tri_meta(layout), out, no_jac)
         grad = np.zeros_like(tab)

@@ -1,8 +1,5 @@
 """BufferPool: a buffer handed to torch is never reused while a tensor still shares its memory."""
 
-import copy
-import pickle
-
 import numpy as np
 import torch
 
@@ -64,20 +61,7 @@ def test_kept_sparse_gradient_is_not_overwritten_by_the_next_backward():
     multilinear(x1, table, layout, "numba", sparse=True).sum().backward()
     torch.testing.assert_close(table.grad.to_dense(), expected, rtol=0, atol=0)
     vptr = table.grad._values().data_ptr()
-    assert any(b.ctypes.data <= vptr < b.ctypes.data + b.nbytes for b in layout._grad_pool._bases)
-
-
-def test_copies_and_pickles_of_a_layout_drop_the_kernel_scratch():
-    layout = TableLayout.build(grid_entries(np.array([1.2, 1.0, 0.8]), 0.3, 0.05, 3, True, 10, False))
-    table = torch.randn(layout.total_rows, 2, requires_grad=True)
-    multilinear(torch.rand(50, 3), table, layout, "numba", sparse=True).sum().backward()
-    assert hasattr(layout, "_grad_pool") and hasattr(layout, "_acc_ws")
-    for other in (copy.deepcopy(layout), pickle.loads(pickle.dumps(layout))):
-        assert not hasattr(other, "_grad_pool") and not hasattr(other, "_acc_ws")
-        np.testing.assert_array_equal(other.row_off, layout.row_off)
-        t2 = table.detach().clone().requires_grad_()
-        x = torch.rand(40, 3)
-        torch.testing.assert_close(multilinear(x, t2, other, "numba"), multilinear(x, t2, layout, "torch"))
+    assert any(b.ctypes.data <= vptr < b.ctypes.data + b.nbytes for b in layout.workspace.grad_pool._bases)
 
 
 def test_smallest_fitting_buffer_is_taken():

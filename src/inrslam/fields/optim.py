@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from inrslam.fields.kernels import sparse_rows
-from inrslam.fields.kernels.function import unique_rows_of, workspace
+from inrslam.fields.kernels.function import row_slots, unique_rows_of
 
 
 def is_lazy(p: torch.Tensor) -> bool:
@@ -47,7 +47,7 @@ class LazyAdam(torch.optim.Optimizer):
     def _slot(self, p: torch.Tensor) -> np.ndarray:
         layout = self._layouts.get(id(p))
         if layout is not None and layout.total_rows == p.shape[0]:
-            return workspace(layout)
+            return row_slots(layout)
         ws = self._slots.get(id(p))
         if ws is None or ws.shape[0] != p.shape[0]:
             ws = self._slots[id(p)] = np.full(p.shape[0], -1, dtype=np.int32)

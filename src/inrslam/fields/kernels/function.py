@@ -10,7 +10,6 @@ import torch
 
 from inrslam.fields.kernels import generic, sparse_rows, trilinear
 from inrslam.fields.kernels.layout import TableLayout
-from inrslam.fields.kernels.pool import BufferPool
 from inrslam.fields.kernels.torch_interp import interp_torch
 
 #: Tables with more rows than this get a sparse (COO, unique rows) gradient from the fused backward;
@@ -23,26 +22,25 @@ DENSE_GRAD_MAX_ROWS = 1 << 16
 ACCUMULATOR_MAX_BYTES = 64 << 20
 
 
-def workspace(layout: TableLayout) -> np.ndarray:
-    """The (M,) int32 scratch array (all −1 between uses) of the row-compaction kernels, created on first use."""
-    ws = getattr(layout, "_slot", None)
-    if ws is None or ws.shape[0] != layout.total_rows:
-        ws = np.full(layout.total_rows, -1, dtype=np.int32)
-        layout._slot = ws
-    return ws
+def row_slots(layout: TableLayout) -> np.ndarray:
+    """The (M,) int32 row → slot array (all −1 between uses) of the row-compaction kernels, created on first use."""
+    ws = layout.workspace
+    if ws.slots is None or ws.slots.shape[0] != layout.total_rows:
+        ws.slots = np.full(layout.total_rows, -1, dtype=np.int32)
+    return ws.slots
 
 
 def _accumulator(layout: TableLayout, n_feat: int, dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(acc (M,F), mark_off (E,), mark bitmap uint8) scratch of the accumulator table backward, all zero between
     uses; entry e's row bits start at byte mark_off[e] (byte-aligned per entry, so threads never share a byte)."""
-    ws = getattr(layout, "_acc_ws", None)
-    if ws is None or ws[0].shape != (layout.total_rows, n_feat) or ws[0].dtype != np.dtype(dtype):
+    acc = layout.workspace.accumulator
+    if acc is None or acc[0].shape != (layout.total_rows, n_feat) or acc[0].dtype != np.dtype(dtype):
         nbytes = (layout.rows + 7) // 8
         mark_off = np.zeros_like(nbytes)
         mark_off[1:] = np.cumsum(nbytes)[:-1]
-        ws = (np.zeros((layout.total_rows, n_feat), dtype=dtype), mark_off, np.zeros(int(nbytes.sum()), np.uint8))
-        layout._acc_ws = ws
-    return ws
+        acc = (np.zeros((layout.total_rows, n_feat), dtype=dtype), mark_off, np.zeros(int(nbytes.sum()), np.uint8))
+        layout.workspace.accumulator = acc
+    return acc
 
 
 #: Row-block size (log2) of the row parts of the trilinear sparse backward (see ``_row_parts``).
@@ -56,9 +54,9 @@ def _row_parts(layout: TableLayout) -> int:
     return threads if layout.n_entries < 2 * threads else 1
 
 
-def _sparse_workspace(layout: TableLayout, n_points: int, n_feat: int, dtype, parts: int = 1) -> tuple[np.ndarray, ...]:
-    """(cap_off (P·E,), rows (C,) int32, values (C,F)) scratch of the sparse table backward, kept on the layout and
-    reused while it is large enough; item i = p·E + e holds at most min(N·2^D_e, rows of part p of entry e) rows
+def _sparse_out(layout: TableLayout, n_points: int, n_feat: int, dtype, parts: int = 1) -> tuple[np.ndarray, ...]:
+    """(cap_off (P·E,), rows (C,) int32, values (C,F)) scratch of the sparse table backward, kept in the workspace
+    and reused while it is large enough; item i = p·E + e holds at most min(N·2^D_e, rows of part p of entry e) rows
     (blocks of 2^PART_LOG2 rows dealt round-robin to P parts). Never zeroed (kernels write on first touch), so a
     backward pays neither a large allocation nor its page faults."""
     blk = 1 << PART_LOG2
@@ -68,13 +66,13 @@ def _sparse_workspace(layout: TableLayout, n_points: int, n_feat: int, dtype, pa
     cap_off = np.zeros_like(caps)
     cap_off[1:] = np.cumsum(caps)[:-1]
     need = int(caps.sum())
-    ws = getattr(layout, "_sparse_ws", None)
-    if ws is None or ws[0].shape[0] < need or ws[1].shape[1] != n_feat or ws[1].dtype != np.dtype(dtype):
+    out = layout.workspace.sparse_out
+    if out is None or out[0].shape[0] < need or out[1].shape[1] != n_feat or out[1].dtype != np.dtype(dtype):
         # grow to the largest capacity needed so far (capped by the table size)
-        cap = max(need, ws[0].shape[0] if ws is not None and ws[1].dtype == np.dtype(dtype) else 0)
-        ws = (np.empty(cap, np.int32), np.empty((cap, n_feat), dtype=dtype))  # rows < 2^31 (as the slots)
-        layout._sparse_ws = ws
-    return cap_off, ws[0], ws[1]
+        cap = max(need, out[0].shape[0] if out is not None and out[1].dtype == np.dtype(dtype) else 0)
+        out = (np.empty(cap, np.int32), np.empty((cap, n_feat), dtype=dtype))  # rows < 2^31 (as the slots)
+        layout.workspace.sparse_out = out
+    return cap_off, out[0], out[1]
 
 
 def _meta(layout: TableLayout):
@@ -82,42 +80,25 @@ def _meta(layout: TableLayout):
             layout.rows, layout.row_off)
 
 
-def _is_trilinear(layout: TableLayout) -> bool:
-    """All entries are 3-D over axes (x,y,z): use the specialised trilinear kernels."""
-    tri = getattr(layout, "_trilinear", None)
-    if tri is None:
-        tri = bool(np.all(layout.ndim == 3) and np.all(layout.axes == np.array([0, 1, 2])))
-        layout._trilinear = tri
-    return tri
-
-
 def _tri_meta(layout: TableLayout):
     return (layout.res, layout.scale, layout.offset, layout.lo, layout.hi, layout.stride, layout.hashed,
             layout.rows, layout.row_off)
 
 
-def _grad_pool(layout: TableLayout) -> BufferPool:
-    """The pool of the sparse gradients' (rows, values) arrays of ``layout``, created on first use."""
-    pool = getattr(layout, "_grad_pool", None)
-    if pool is None:
-        pool = layout._grad_pool = BufferPool()
-    return pool
-
-
 def _sparse_grad(layout: TableLayout, shape, dtype, counts: np.ndarray, fill) -> torch.Tensor:
     """Sparse COO (M,F) table gradient of Σ counts unique rows, written into (rows, vals) by ``fill(rows, vals)``.
-    Both arrays come from the layout's ``BufferPool``: a steady stream of backward passes reuses the same memory."""
+    Both arrays come from the workspace's ``BufferPool``: a steady stream of backward passes reuses the same memory."""
     nnz = int(counts.sum())
     if nnz == 0:  # torch-owned empty arrays: a later accumulation may resize them in place
         return torch.sparse_coo_tensor(torch.empty((1, 0), dtype=torch.int64),
                                        torch.from_numpy(np.empty((0, shape[1]), dtype)).clone(), shape,
                                        check_invariants=False)
-    pool = _grad_pool(layout)
+    pool = layout.workspace.grad_pool
     rows = pool.take((nnz,), np.int64)
     vals = pool.take((nnz, shape[1]), dtype)
     fill(rows, vals)
     # lets the optimizer skip de-duplicating this exact gradient (the weak references die with its memory)
-    layout._unique_grad = (weakref.ref(rows), weakref.ref(vals))
+    layout.workspace.last_grad = (weakref.ref(rows), weakref.ref(vals))
     return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], torch.from_numpy(vals), shape,
                                    check_invariants=False)
 
@@ -125,7 +106,7 @@ def _sparse_grad(layout: TableLayout, shape, dtype, counts: np.ndarray, fill) ->
 def unique_rows_of(layout: TableLayout, rows: torch.Tensor, values: torch.Tensor) -> bool:
     """True if ``rows`` (K,) and ``values`` (K,F) (a sparse gradient's) are those of the last fused sparse gradient
     of ``layout``, whose rows are unique."""
-    refs = getattr(layout, "_unique_grad", None)
+    refs = layout.workspace.last_grad
     if refs is None or rows.device.type != "cpu" or values.device.type != "cpu":
         return False
     r, v = refs[0](), refs[1]()
@@ -135,11 +116,11 @@ def unique_rows_of(layout: TableLayout, rows: torch.Tensor, values: torch.Tensor
 
 
 def _level_major(g: np.ndarray, layout: TableLayout) -> np.ndarray:
-    """(E,N,F) copy of g (N,E,F) in a scratch array kept on the layout (grown, never shrunk)."""
-    ws = getattr(layout, "_gT", None)
-    if ws is None or ws.dtype != g.dtype or ws.size < g.size:
-        ws = layout._gT = np.empty(g.size, g.dtype)
-    gT = ws[: g.size].reshape(g.shape[1], g.shape[0], g.shape[2])
+    """(E,N,F) copy of g (N,E,F) in a scratch array kept in the workspace (grown, never shrunk)."""
+    buf = layout.workspace.level_major
+    if buf is None or buf.dtype != g.dtype or buf.size < g.size:
+        buf = layout.workspace.level_major = np.empty(g.size, g.dtype)
+    gT = buf[: g.size].reshape(g.shape[1], g.shape[0], g.shape[2])
     trilinear.level_major(g, gT)
     return gT
 
@@ -149,12 +130,12 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, 
     M, F = shape
     if not sparse:
         grad = torch.zeros(M, F, dtype=dtype)
-        if _is_trilinear(layout):
+        if layout.trilinear:
             trilinear.tri_backward_table_dense(xn, g, *_tri_meta(layout), grad.numpy())
         else:
             generic.interp_backward_table_dense(xn, g, *_meta(layout), grad.numpy())
         return grad
-    if _is_trilinear(layout) and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
+    if layout.trilinear and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
         acc, mark_off, mark = _accumulator(layout, F, g.dtype)
         gT = _level_major(g, layout)  # (E,N,F): each level reads its gradient contiguously
         counts = np.zeros(layout.n_entries, np.int64)
@@ -162,16 +143,16 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, 
         return _sparse_grad(layout, shape, g.dtype, counts,
                             lambda rows, vals: sparse_rows.drain_marked_rows(layout.rows, layout.row_off, mark_off,
                                                                              counts, acc, mark, rows, vals))
-    if _is_trilinear(layout):
+    if layout.trilinear:
         parts = _row_parts(layout)
-        cap_off, out_rows, out_vals = _sparse_workspace(layout, xn.shape[0], F, g.dtype, parts)
+        cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], F, g.dtype, parts)
         counts = np.zeros(layout.n_entries * parts, np.int64)
-        trilinear.tri_backward_table_sparse(xn, g, *_tri_meta(layout), workspace(layout), parts, PART_LOG2, cap_off,
+        trilinear.tri_backward_table_sparse(xn, g, *_tri_meta(layout), row_slots(layout), parts, PART_LOG2, cap_off,
                                             out_rows, out_vals, counts)
     else:
-        cap_off, out_rows, out_vals = _sparse_workspace(layout, xn.shape[0], F, g.dtype)
+        cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], F, g.dtype)
         counts = np.zeros(layout.n_entries, np.int64)
-        generic.interp_backward_table_sparse(xn, g, *_meta(layout), workspace(layout), cap_off, out_rows, out_vals,
+        generic.interp_backward_table_sparse(xn, g, *_meta(layout), row_slots(layout), cap_off, out_rows, out_vals,
                                              counts)
     return _sparse_grad(layout, shape, g.dtype, counts,
                         lambda rows, vals: sparse_rows.compact_entries(cap_off, counts, out_rows, out_vals, rows, vals))
@@ -188,7 +169,7 @@ class MultilinearFn(torch.autograd.Function):
         tab = table.detach()
         xn_np = xn.detach().contiguous().numpy()
         ctx.jac = None
-        if _is_trilinear(layout):
+        if layout.trilinear:
             out = torch.empty(xn.shape[0], layout.n_entries, tab.shape[1], dtype=tab.dtype)
             # one lookup for both: keep ∂out/∂xn for the input backward (an empty array: no Jacobian)
             jac = np.empty((xn.shape[0] if ctx.needs_input_grad[0] else 0, layout.n_entries, tab.shape[1], 3),

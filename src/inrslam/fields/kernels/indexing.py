@@ -1,5 +1,10 @@
 """Inline numba helpers shared by the kernel families: the table row of a vertex, the order in which parallel
-loops deal entries to threads, and the byte tables of the touched-row bitmap (see ``layout.py`` for the maths)."""
+loops deal entries to threads, and the byte tables of the touched-row bitmap (see ``layout.py`` for the maths).
+
+numba's on-disk cache (``cache=True``) is invalidated only by edits to a kernel's own file, not to the helpers it
+inlines from here (or from ``prefetch.py``): after editing this file, delete the kernels' cache files
+(``__pycache__/{generic,trilinear,sparse_rows}.*.nb[ic]``).
+"""
 
 from __future__ import annotations
 

@@ -21,10 +21,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from inrslam.fields.kernels.workspace import KernelWorkspace
+
 PRIMES = (1, 2654435761, 805459861)
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, slots=True)
 class TableLayout:
     """Layout of E lookup entries over one (M, F) table: which rows each owns and how a point maps to them (numpy
     arrays, all of leading size E)."""
@@ -40,13 +42,23 @@ class TableLayout:
     row_off: np.ndarray  # (E,) int64, first row of the entry
     lo: np.ndarray  # (E,3) float64, u's clamp range [lo, hi] = [0, R−1] ∩ [offset, scale + offset] (p̂ ∈ [0,1])
     hi: np.ndarray  # (E,3) float64
-    _torch_cache: dict = field(default_factory=dict, repr=False)
+    #: every entry is 3-D over axes (x, y, z): the specialised trilinear kernels apply (derived)
+    trilinear: bool = field(init=False)
+    #: the kernels' scratch for this layout (``workspace.py``); never copied or pickled
+    workspace: KernelWorkspace = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.trilinear = bool(np.all(self.ndim == 3) and np.all(self.axes == np.array([0, 1, 2])))
+        self.workspace = KernelWorkspace()
 
     def __getstate__(self) -> dict:
-        """Copies and pickles carry the dataclass fields only: the scratch arrays, buffer pools and caches that the
-        kernels keep as extra attributes on the layout are rebuilt on first use."""
-        fields = {f.name for f in dataclasses.fields(self)}
-        return {k: v for k, v in self.__dict__.items() if k in fields} | {"_torch_cache": {}}
+        """Copies and pickles carry the layout only: a copy starts with an empty workspace."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "workspace"}
+
+    def __setstate__(self, state: dict) -> None:
+        for k, v in state.items():
+            setattr(self, k, v)
+        self.workspace = KernelWorkspace()
 
     @property
     def n_entries(self) -> int:
@@ -106,10 +118,11 @@ class TableLayout:
 
     def torch_arrays(self, device: torch.device) -> dict[str, torch.Tensor]:
         """The metadata as tensors on ``device`` (cached), for the reference path."""
+        cache = self.workspace.torch_arrays
         key = str(device)
-        if key not in self._torch_cache:
-            self._torch_cache[key] = {
+        if key not in cache:
+            cache[key] = {
                 k: torch.as_tensor(getattr(self, k), device=device)
                 for k in ("axes", "res", "scale", "offset", "stride", "rows", "row_off")
             }
-        return self._torch_cache[key]
+        return cache[key]
