@@ -117,14 +117,14 @@ def test_faithful_planes_touch_only_the_upper_half():
         g = field.encoder.table.grad
         g = g.to_dense() if g.is_sparse else g
         touched = int((g.abs().sum(1) > 0).sum())
-        spec = field.encoder.spec
+        layout = field.encoder.layout
         if faithful:
-            first = (spec.res[:, :2] - 1) // 2  # lowest reachable vertex per axis
-            expected = int(np.prod(spec.res[:, :2] - first, axis=1).sum())
+            first = (layout.res[:, :2] - 1) // 2  # lowest reachable vertex per axis
+            expected = int(np.prod(layout.res[:, :2] - first, axis=1).sum())
         else:
-            expected = spec.total_rows
+            expected = layout.total_rows
         assert touched == expected
-        assert (touched < 0.5 * spec.total_rows) == faithful
+        assert (touched < 0.5 * layout.total_rows) == faithful
 
 
 def test_tensorf_vm_vs_faithful_combination():

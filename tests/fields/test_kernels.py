@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 import torch
 
-from inrslam.fields.kernels import InterpSpec, interp_torch, multilinear
+from inrslam.fields.kernels import TableLayout, interp_torch, multilinear
 from inrslam.fields.resolution import grid_entries, line_entries, plane_entries, plane_sizes
 
 EXTENT = np.array([1.2, 1.0, 0.8])
 
 
-def specs():
+def entry_sets():
     """name -> entries covering every kernel: dense, hash (hashed + direct levels), faithful grid, planes, lines."""
     return {
         "dense": grid_entries(EXTENT, 0.3, 0.1, 3, False, 19, False),
@@ -25,34 +25,34 @@ def specs():
 
 
 def _case(name, dtype=torch.float32, n=400, feat=3):
-    spec = InterpSpec.build(specs()[name])
-    table = torch.randn(spec.total_rows, feat, dtype=dtype)
+    layout = TableLayout.build(entry_sets()[name])
+    table = torch.randn(layout.total_rows, feat, dtype=dtype)
     x = torch.rand(n, 3, dtype=dtype) * 1.2 - 0.1  # ~25% of points have some coordinate outside [0,1]
-    return spec, table, x
+    return layout, table, x
 
 
-def _grads(backend, spec, table, x, cot, sparse=None):
+def _grads(backend, layout, table, x, cot, sparse=None):
     t = table.clone().requires_grad_()
     p = x.clone().requires_grad_()
-    out = multilinear(p, t, spec, backend, sparse=sparse)
+    out = multilinear(p, t, layout, backend, sparse=sparse)
     out.backward(cot)
     gt = t.grad.to_dense() if t.grad.is_sparse else t.grad
     return out.detach(), p.grad, gt
 
 
-def test_hash_spec_really_hashes():
-    spec = InterpSpec.build(specs()["hash"])
-    assert spec.hashed.tolist() == [False, False, True]
-    assert spec.rows[2] == 1024
+def test_hash_layout_really_hashes():
+    layout = TableLayout.build(entry_sets()["hash"])
+    assert layout.hashed.tolist() == [False, False, True]
+    assert layout.rows[2] == 1024
 
 
-@pytest.mark.parametrize("name", list(specs()))
+@pytest.mark.parametrize("name", list(entry_sets()))
 @pytest.mark.parametrize("sparse", [False, True])
 def test_numba_matches_reference(name, sparse):
-    spec, table, x = _case(name)
-    cot = torch.randn(x.shape[0], spec.n_entries, table.shape[1])
-    o_n, gx_n, gt_n = _grads("numba", spec, table, x, cot, sparse=sparse)
-    o_t, gx_t, gt_t = _grads("torch", spec, table, x, cot)
+    layout, table, x = _case(name)
+    cot = torch.randn(x.shape[0], layout.n_entries, table.shape[1])
+    o_n, gx_n, gt_n = _grads("numba", layout, table, x, cot, sparse=sparse)
+    o_t, gx_t, gt_t = _grads("torch", layout, table, x, cot)
     torch.testing.assert_close(o_n, o_t, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(gx_n, gx_t, rtol=1e-5, atol=1e-4 * gx_t.abs().max().item())
     torch.testing.assert_close(gt_n, gt_t, rtol=1e-5, atol=1e-5)
@@ -60,35 +60,36 @@ def test_numba_matches_reference(name, sparse):
 
 
 def test_sparse_grad_has_unique_touched_rows():
-    spec, table, x = _case("hash")
+    layout, table, x = _case("hash")
     t = table.clone().requires_grad_()
-    multilinear(x, t, spec, "numba", sparse=True).sum().backward()
+    multilinear(x, t, layout, "numba", sparse=True).sum().backward()
     rows = t.grad._indices()[0]
     assert t.grad.is_sparse and rows.unique().numel() == rows.numel()
-    dense = multilinear(x, table.clone().requires_grad_(), spec, "torch")
+    dense = multilinear(x, table.clone().requires_grad_(), layout, "torch")
     t2 = table.clone().requires_grad_()
-    interp_torch(x, t2, spec).sum().backward()
+    interp_torch(x, t2, layout).sum().backward()
     touched_ref = set(torch.nonzero(t2.grad.abs().sum(1) > 0)[:, 0].tolist())
     assert touched_ref <= set(rows.tolist())  # every row with a gradient is reported (plus zero-weight corners)
-    assert dense.shape == (x.shape[0], spec.n_entries, table.shape[1])
+    assert dense.shape == (x.shape[0], layout.n_entries, table.shape[1])
 
 
 @pytest.mark.parametrize("name", ["dense", "hash", "dense_faithful", "hash_faithful"])
 def test_merged_clamp_equals_two_clamps(name):
     """The trilinear kernels clamp u once to [lo, hi] instead of p̂ to [0,1] and then u to [0, R−1]: the same
     corner, weight and du/dp̂ for points inside, on and outside the box (float32 inputs, as the kernels see them)."""
-    from inrslam.fields.kernels.numba_interp import _axis, _axis_lean
+    from inrslam.fields.kernels.generic import _axis
+    from inrslam.fields.kernels.trilinear import _axis_lean
 
-    spec = InterpSpec.build(specs()[name])
+    layout = TableLayout.build(entry_sets()[name])
     rng = np.random.default_rng(0)
     edges = [-1.0, -1e-7, 0.0, 1e-7, 0.5, 1.0 - 1e-7, 1.0, 1.0 + 1.2e-7, 2.0]
     ps = np.concatenate([edges, rng.uniform(-0.2, 1.2, 300)]).astype(np.float32).astype(np.float64)
-    for e in range(spec.n_entries):
+    for e in range(layout.n_entries):
         for a in range(3):
-            args = (spec.scale[e, a], spec.offset[e, a], spec.res[e, a])
-            vertices = (np.arange(spec.res[e, a]) - spec.offset[e, a]) / spec.scale[e, a]  # p̂ of grid vertices
+            args = (layout.scale[e, a], layout.offset[e, a], layout.res[e, a])
+            vertices = (np.arange(layout.res[e, a]) - layout.offset[e, a]) / layout.scale[e, a]  # p̂ of grid vertices
             for p in np.concatenate([ps, vertices[(vertices >= 0) & (vertices <= 1)]]):
-                assert _axis(p, *args) == _axis_lean(p, args[0], args[1], spec.lo[e, a], spec.hi[e, a], args[2])
+                assert _axis(p, *args) == _axis_lean(p, args[0], args[1], layout.lo[e, a], layout.hi[e, a], args[2])
 
 
 @pytest.mark.parametrize("parts", [1, 2, 3])
@@ -101,42 +102,42 @@ def test_row_partitioned_sparse_backward_matches_reference(monkeypatch, name, pa
 
     monkeypatch.setattr(function, "ACCUMULATOR_MAX_BYTES", 0)  # force the slot kernel, not the accumulator
     monkeypatch.setattr(function, "PART_LOG2", 2)
-    monkeypatch.setattr(function, "_row_parts", lambda spec: parts)
-    spec, table, x = _case(name, n=300, feat=2)
-    cot = torch.randn(x.shape[0], spec.n_entries, table.shape[1])
+    monkeypatch.setattr(function, "_row_parts", lambda layout: parts)
+    layout, table, x = _case(name, n=300, feat=2)
+    cot = torch.randn(x.shape[0], layout.n_entries, table.shape[1])
     t = table.clone().requires_grad_()
-    multilinear(x, t, spec, "numba", sparse=True).backward(cot)
+    multilinear(x, t, layout, "numba", sparse=True).backward(cot)
     rows = t.grad._indices()[0]
     assert rows.unique().numel() == rows.numel()
-    _, _, gt_ref = _grads("torch", spec, table, x, cot)
+    _, _, gt_ref = _grads("torch", layout, table, x, cot)
     torch.testing.assert_close(t.grad.to_dense(), gt_ref, rtol=1e-5, atol=1e-5)
-    assert np.all(spec._slot == -1)  # the slot scratch is restored for the next call
+    assert np.all(layout.workspace.slots == -1)  # the slot scratch is restored for the next call
     # each row is summed over the points in order whatever the split: bitwise the same gradient as one part
-    monkeypatch.setattr(function, "_row_parts", lambda spec: 1)
+    monkeypatch.setattr(function, "_row_parts", lambda layout: 1)
     t1 = table.clone().requires_grad_()
-    multilinear(x, t1, spec, "numba", sparse=True).backward(cot)
+    multilinear(x, t1, layout, "numba", sparse=True).backward(cot)
     assert torch.equal(t1.grad.to_dense(), t.grad.to_dense())
 
 
 @pytest.mark.parametrize("backend", ["torch", "numba"])
 @pytest.mark.parametrize("name", ["dense", "hash", "planes_faithful", "planes+lines"])
 def test_gradcheck_float64(backend, name):
-    spec, table, _ = _case(name, dtype=torch.float64, n=12, feat=2)
+    layout, table, _ = _case(name, dtype=torch.float64, n=12, feat=2)
     x = (torch.rand(12, 3, dtype=torch.float64) * 0.9 + 0.05).requires_grad_()
     table.requires_grad_()
-    assert torch.autograd.gradcheck(lambda p, t: multilinear(p, t, spec, backend, sparse=False), (x, table),
+    assert torch.autograd.gradcheck(lambda p, t: multilinear(p, t, layout, backend, sparse=False), (x, table),
                                     eps=1e-6, atol=1e-5, fast_mode=True)
 
 
 def test_double_backward_through_fused_kernel_matches_reference():
     """create_graph (e.g. losses on SDF normals) differentiates the reference inside the fused backward."""
-    spec, table, _ = _case("dense", dtype=torch.float64, n=50)
+    layout, table, _ = _case("dense", dtype=torch.float64, n=50)
     x = torch.rand(50, 3, dtype=torch.float64) * 0.9 + 0.05
     res = {}
     for backend in ("numba", "torch"):
         t = table.clone().requires_grad_()
         p = x.clone().requires_grad_()
-        out = multilinear(p, t, spec, backend, sparse=False)
+        out = multilinear(p, t, layout, backend, sparse=False)
         (gx,) = torch.autograd.grad(out.square().sum(), p, create_graph=True)
         gx.square().sum().backward()
         res[backend] = (gx.detach(), t.grad)
@@ -147,11 +148,11 @@ def test_double_backward_through_fused_kernel_matches_reference():
 @pytest.mark.parametrize("backend", ["torch", "numba"])
 @pytest.mark.parametrize("name", ["dense", "hash", "planes", "planes+lines"])
 def test_outside_points_are_clamped(backend, name):
-    spec, table, _ = _case(name)
+    layout, table, _ = _case(name)
     x = torch.tensor([[-3.0, 0.5, 0.5], [0.2, 7.0, 0.4], [0.3, 0.6, -1e3], [2.0, -2.0, 5.0]])
     p = x.clone().requires_grad_()
-    out = multilinear(p, table, spec, backend)
-    ref = multilinear(x.clamp(0, 1), table, spec, backend)
+    out = multilinear(p, table, layout, backend)
+    ref = multilinear(x.clamp(0, 1), table, layout, backend)
     assert torch.isfinite(out).all()
     torch.testing.assert_close(out, ref)
     out.sum().backward()
@@ -164,74 +165,75 @@ def test_vertex_aligned_full_plane_mapping():
     """Fixed mode: p̂ = 0 / 1 reads the first / last vertex exactly; faithful mode reads the plane centre at p̂ = 0."""
     sizes = [[5, 4, 3]]
     for faithful, expect_col in ((False, 0), (True, 2)):
-        spec = InterpSpec.build(plane_entries(sizes, faithful)[:1])  # the xy plane, 5 x 4 vertices
+        layout = TableLayout.build(plane_entries(sizes, faithful)[:1])  # the xy plane, 5 x 4 vertices
         table = torch.arange(20, dtype=torch.float32)[:, None]  # row = j * 5 + i
-        out = multilinear(torch.zeros(1, 3), table, spec, "numba")
+        out = multilinear(torch.zeros(1, 3), table, layout, "numba")
         j = 0 if not faithful else 1.5  # (4-1)/2
         assert out.item() == pytest.approx(j * 5 + expect_col)
-    spec = InterpSpec.build(plane_entries(sizes, False)[:1])
-    assert multilinear(torch.ones(1, 3), torch.arange(20.0)[:, None], spec, "numba").item() == pytest.approx(19.0)
+    layout = TableLayout.build(plane_entries(sizes, False)[:1])
+    assert multilinear(torch.ones(1, 3), torch.arange(20.0)[:, None], layout, "numba").item() == pytest.approx(19.0)
 
 
 def test_hash_index_matches_tcnn_formula():
     """A hashed level reads row (i ⊕ j·2654435761 ⊕ k·805459861) mod 2^b of integer vertex (i,j,k)."""
     ent = dict(axes=[0, 1, 2], res=[101, 101, 101], scale=[100.0] * 3, offset=[0.0] * 3, rows=1 << 8, hashed=True)
-    spec = InterpSpec.build([ent])
+    layout = TableLayout.build([ent])
     table = torch.randn(256, 1)
     i, j, k = 37, 58, 91
     x = torch.tensor([[i / 100, j / 100, k / 100]], dtype=torch.float64)
     expected = table[(i ^ (j * 2654435761) ^ (k * 805459861)) % 256]
     for backend in ("numba", "torch"):
-        assert multilinear(x, table.double(), spec, backend).item() == pytest.approx(expected.item(), rel=1e-6)
+        assert multilinear(x, table.double(), layout, backend).item() == pytest.approx(expected.item(), rel=1e-6)
 
 
 @pytest.mark.parametrize("backend", ["numba", "torch"])
 @pytest.mark.parametrize("name", ["dense", "hash", "planes+lines"])
 def test_nan_points_get_nan_features_and_no_gradient(backend, name):
-    spec, table, x = _case(name)
+    layout, table, x = _case(name)
     x[7, 1] = float("nan")
     x[30, 0] = float("nan")
-    cot = torch.randn(x.shape[0], spec.n_entries, table.shape[1])
-    out, gx, gt = _grads(backend, spec, table, x, cot)
+    cot = torch.randn(x.shape[0], layout.n_entries, table.shape[1])
+    out, gx, gt = _grads(backend, layout, table, x, cot)
     ok = torch.ones(x.shape[0], dtype=torch.bool)
     ok[[7, 30]] = False
     assert torch.isnan(out[~ok]).all() and torch.isfinite(out[ok]).all()
-    o_ref, gx_ref, gt_ref = _grads("torch", spec, table, x[ok], cot[ok])  # the same without the NaN points
+    o_ref, gx_ref, gt_ref = _grads("torch", layout, table, x[ok], cot[ok])  # the same without the NaN points
     torch.testing.assert_close(out[ok], o_ref, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(gt, gt_ref, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(gx[ok], gx_ref, rtol=1e-5, atol=1e-4 * gx_ref.abs().max().item())
     assert torch.all(gx[~ok] == 0)
     with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
-        multilinear(x[:, :2], table, spec, backend)
+        multilinear(x[:, :2], table, layout, backend)
 
 
 @pytest.mark.parametrize("name", ["dense", "hash", "planes+lines"])
 def test_kernels_called_directly_with_nan_stay_in_bounds(name):
     """The raw numba kernels map a NaN coordinate to the box's low face (a defined row) instead of indexing out of
     range (``multilinear`` never passes them one)."""
-    from inrslam.fields.kernels import numba_interp as nk
-    from inrslam.fields.kernels.function import _is_trilinear, _meta, _tri_meta
+    from inrslam.fields.kernels import generic, trilinear
+    from inrslam.fields.kernels.function import _meta, _tri_meta
 
-    spec, table, x = _case(name)
+    layout, table, x = _case(name)
     x[:, 0] = float("nan")
     xn, tab = x.numpy(), table.numpy()
     low = x.clone()
     low[:, 0] = 0.0
-    expected = interp_torch(low, table, spec)
-    out = np.zeros((x.shape[0], spec.n_entries, tab.shape[1]), np.float32)
-    if _is_trilinear(spec):
-        nk.tri_forward(xn, tab, *_tri_meta(spec), out, np.empty((0, spec.n_entries, tab.shape[1], 3), np.float32))
+    expected = interp_torch(low, table, layout)
+    out = np.zeros((x.shape[0], layout.n_entries, tab.shape[1]), np.float32)
+    if layout.trilinear:
+        no_jac = np.empty((0, layout.n_entries, tab.shape[1], 3), np.float32)
+        trilinear.tri_forward(xn, tab, *_tri_meta(layout), out, no_jac)
         grad = np.zeros_like(tab)
-        nk.tri_backward_table_dense(xn, np.ones_like(out), *_tri_meta(spec), grad)
+        trilinear.tri_backward_table_dense(xn, np.ones_like(out), *_tri_meta(layout), grad)
         assert np.isfinite(grad).all()
     else:
-        nk.interp_forward(xn, tab, *_meta(spec), out)
+        generic.interp_forward(xn, tab, *_meta(layout), out)
     torch.testing.assert_close(torch.from_numpy(out), expected, rtol=1e-5, atol=1e-5)
 
 
 def test_reference_table_gradient_is_the_same_on_every_run():
     """The reference path's table gradient (many points per row) is summed in a fixed order: same bits each run."""
-    spec, table, x = _case("hash", n=6000, feat=2)
-    cot = torch.randn(x.shape[0], spec.n_entries, 2)
-    grads = {_grads("torch", spec, table, x, cot)[2].numpy().tobytes() for _ in range(5)}
+    layout, table, x = _case("hash", n=6000, feat=2)
+    cot = torch.randn(x.shape[0], layout.n_entries, 2)
+    grads = {_grads("torch", layout, table, x, cot)[2].numpy().tobytes() for _ in range(5)}
     assert len(grads) == 1

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from inrslam.fields import FieldConfig, build_field, make_optimizer
-from inrslam.fields.kernels import InterpSpec, multilinear
+from inrslam.fields.kernels import TableLayout, multilinear
 from inrslam.fields.kernels.function import unique_rows_of
 from inrslam.fields.optim import LazyAdam
 
@@ -32,13 +32,13 @@ class Toy(nn.Module):
     def __init__(self):
         super().__init__()
         ents = [dict(axes=[0, 1, 2], res=[12] * 3, scale=[11.0] * 3, offset=[0.0] * 3, rows=None, hashed=False)] * 2
-        self.spec = InterpSpec.build(ents)
-        self.table = nn.Parameter(torch.randn(self.spec.total_rows, 2))
+        self.layout = TableLayout.build(ents)
+        self.table = nn.Parameter(torch.randn(self.layout.total_rows, 2))
         self.table._inr_lazy = True
         self.lin = nn.Linear(4, 1)
 
     def forward(self, x, backend, sparse=True):
-        return self.lin(multilinear(x, self.table, self.spec, backend, sparse=sparse).reshape(x.shape[0], -1))
+        return self.lin(multilinear(x, self.table, self.layout, backend, sparse=sparse).reshape(x.shape[0], -1))
 
 
 @pytest.mark.parametrize("backend,sparse", [("numba", True), ("numba", False), ("torch", None)])
@@ -58,7 +58,7 @@ def test_lazy_adam_matches_reference_and_keeps_untouched_rows(backend, sparse):
         model(x, backend, sparse).square().sum().backward()
         # reference gradient of the table (dense) and the touched rows (x reaches beyond the box at t = 4)
         tref = p_ref.clone().requires_grad_()
-        twin(multilinear(x, tref, model.spec, "torch").reshape(40, -1)).square().sum().backward()
+        twin(multilinear(x, tref, model.layout, "torch").reshape(40, -1)).square().sum().backward()
         rows = torch.nonzero(tref.grad.abs().sum(1) > 0)[:, 0]
         before = model.table.detach().clone()
         opt.step()
@@ -146,7 +146,8 @@ def test_gradient_accumulated_over_two_backward_passes_is_deduplicated():
     model(x2, "numba").square().sum().backward()
     twin(torch.cat([x1, x2]), "numba").square().sum().backward()  # one pass over both: unique rows
     g = model.table.grad
-    assert not unique_rows_of(model.spec, g._indices()[0], g._values())  # a sum of two gradients: not the last fused one
+    # a sum of two gradients: not the last fused one
+    assert not unique_rows_of(model.layout, g._indices()[0], g._values())
     torch.testing.assert_close(g.to_dense(), twin.table.grad.to_dense(), rtol=1e-5, atol=1e-6)
     opt.step()
     twin_opt.step()

@@ -1,12 +1,9 @@
 """BufferPool: a buffer handed to torch is never reused while a tensor still shares its memory."""
 
-import copy
-import pickle
-
 import numpy as np
 import torch
 
-from inrslam.fields.kernels import InterpSpec, multilinear
+from inrslam.fields.kernels import TableLayout, multilinear
 from inrslam.fields.kernels.function import unique_rows_of
 from inrslam.fields.kernels.pool import BufferPool
 from inrslam.fields.resolution import grid_entries
@@ -45,38 +42,26 @@ def test_grows_and_falls_back_to_plain_arrays_when_all_are_busy():
 
 
 def test_kept_sparse_gradient_is_not_overwritten_by_the_next_backward():
-    spec = InterpSpec.build(grid_entries(np.array([1.2, 1.0, 0.8]), 0.3, 0.05, 3, True, 10, False))
-    table = torch.randn(spec.total_rows, 2, requires_grad=True)
+    layout = TableLayout.build(grid_entries(np.array([1.2, 1.0, 0.8]), 0.3, 0.05, 3, True, 10, False))
+    table = torch.randn(layout.total_rows, 2, requires_grad=True)
     g = torch.Generator().manual_seed(0)
     x1, x2 = torch.rand(300, 3, generator=g), torch.rand(300, 3, generator=g)
-    multilinear(x1, table, spec, "numba", sparse=True).sum().backward()
+    multilinear(x1, table, layout, "numba", sparse=True).sum().backward()
     kept = table.grad
-    assert unique_rows_of(spec, kept._indices()[0], kept._values())  # straight from the fused backward: the optimizer trusts its rows
+    # straight from the fused backward: the optimizer trusts its rows
+    assert unique_rows_of(layout, kept._indices()[0], kept._values())
     expected = kept.to_dense().clone()
     table.grad = None
-    multilinear(x2, table, spec, "numba", sparse=True).square().sum().backward()
+    multilinear(x2, table, layout, "numba", sparse=True).square().sum().backward()
     torch.testing.assert_close(kept.to_dense(), expected, rtol=0, atol=0)  # memory of a live gradient untouched
     assert not torch.equal(table.grad.to_dense(), expected)
     # once both are dropped the pool reuses their memory: the third gradient is still exact
     del kept
     table.grad = None
-    multilinear(x1, table, spec, "numba", sparse=True).sum().backward()
+    multilinear(x1, table, layout, "numba", sparse=True).sum().backward()
     torch.testing.assert_close(table.grad.to_dense(), expected, rtol=0, atol=0)
     vptr = table.grad._values().data_ptr()
-    assert any(b.ctypes.data <= vptr < b.ctypes.data + b.nbytes for b in spec._grad_pool._bases)
-
-
-def test_copies_and_pickles_of_a_spec_drop_the_kernel_scratch():
-    spec = InterpSpec.build(grid_entries(np.array([1.2, 1.0, 0.8]), 0.3, 0.05, 3, True, 10, False))
-    table = torch.randn(spec.total_rows, 2, requires_grad=True)
-    multilinear(torch.rand(50, 3), table, spec, "numba", sparse=True).sum().backward()
-    assert hasattr(spec, "_grad_pool") and hasattr(spec, "_acc_ws")
-    for other in (copy.deepcopy(spec), pickle.loads(pickle.dumps(spec))):
-        assert not hasattr(other, "_grad_pool") and not hasattr(other, "_acc_ws")
-        np.testing.assert_array_equal(other.row_off, spec.row_off)
-        t2 = table.detach().clone().requires_grad_()
-        x = torch.rand(40, 3)
-        torch.testing.assert_close(multilinear(x, t2, other, "numba"), multilinear(x, t2, spec, "torch"))
+    assert any(b.ctypes.data <= vptr < b.ctypes.data + b.nbytes for b in layout.workspace.grad_pool._bases)
 
 
 def test_smallest_fitting_buffer_is_taken():
@@ -90,24 +75,24 @@ def test_smallest_fitting_buffer_is_taken():
 
 
 def test_gradient_with_other_indices_on_the_same_values_is_not_trusted():
-    spec = InterpSpec.build(grid_entries(np.array([1.2, 1.0, 0.8]), 0.3, 0.05, 3, True, 10, False))
-    table = torch.randn(spec.total_rows, 2, requires_grad=True)
-    multilinear(torch.rand(100, 3), table, spec, "numba", sparse=True).sum().backward()
+    layout = TableLayout.build(grid_entries(np.array([1.2, 1.0, 0.8]), 0.3, 0.05, 3, True, 10, False))
+    table = torch.randn(layout.total_rows, 2, requires_grad=True)
+    multilinear(torch.rand(100, 3), table, layout, "numba", sparse=True).sum().backward()
     g = table.grad
     idx = g._indices().clone()
     idx[0, 1] = idx[0, 0]  # a duplicate row, same values memory
     forged = torch.sparse_coo_tensor(idx, g._values(), g.shape, check_invariants=False)
-    assert unique_rows_of(spec, g._indices()[0], g._values())
-    assert not unique_rows_of(spec, forged._indices()[0], forged._values())
+    assert unique_rows_of(layout, g._indices()[0], g._values())
+    assert not unique_rows_of(layout, forged._indices()[0], forged._values())
 
 
 def test_empty_gradient_can_be_accumulated():
-    spec = InterpSpec.build(grid_entries(np.array([1.2, 1.0, 0.8]), 0.3, 0.05, 3, True, 10, False))
-    table = torch.randn(spec.total_rows, 2, requires_grad=True)
-    multilinear(torch.zeros(0, 3), table, spec, "numba", sparse=True).sum().backward()
+    layout = TableLayout.build(grid_entries(np.array([1.2, 1.0, 0.8]), 0.3, 0.05, 3, True, 10, False))
+    table = torch.randn(layout.total_rows, 2, requires_grad=True)
+    multilinear(torch.zeros(0, 3), table, layout, "numba", sparse=True).sum().backward()
     assert table.grad._nnz() == 0
     x = torch.rand(30, 3)
-    multilinear(x, table, spec, "numba", sparse=True).sum().backward()  # accumulates into the empty gradient
+    multilinear(x, table, layout, "numba", sparse=True).sum().backward()  # accumulates into the empty gradient
     t2 = table.detach().clone().requires_grad_()
-    multilinear(x, t2, spec, "torch").sum().backward()
+    multilinear(x, t2, layout, "torch").sum().backward()
     torch.testing.assert_close(table.grad.to_dense(), t2.grad)

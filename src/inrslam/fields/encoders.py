@@ -12,26 +12,26 @@ import torch
 from torch import nn
 
 from inrslam.fields.config import KernelChoice
-from inrslam.fields.kernels import InterpSpec, multilinear
+from inrslam.fields.kernels import TableLayout, multilinear
 from inrslam.fields.resolution import grid_entries, line_entries, plane_entries
 
 
 class TableEncoder(nn.Module):
-    """Base: ``table (M,F)`` Parameter + ``spec`` (the E lookup entries); ``lookup(p̂) -> (N,E,F)``."""
+    """Base: ``table (M,F)`` Parameter + ``layout`` (the E lookup entries); ``lookup(p̂) -> (N,E,F)``."""
 
     def __init__(self, entries: list[dict], feature_dim: int, kernel: KernelChoice):
         super().__init__()
-        self.spec = InterpSpec.build(entries)
+        self.layout = TableLayout.build(entries)
         self.feature_dim = feature_dim
         self.kernel = KernelChoice(kernel)
-        self.table = nn.Parameter(torch.empty(self.spec.total_rows, feature_dim))
+        self.table = nn.Parameter(torch.empty(self.layout.total_rows, feature_dim))
 
     def lookup(self, p: torch.Tensor) -> torch.Tensor:
-        return multilinear(p, self.table, self.spec, self.kernel.value)
+        return multilinear(p, self.table, self.layout, self.kernel.value)
 
     def extra_repr(self) -> str:
-        res = [tuple(int(v) for v in r[:d]) for r, d in zip(self.spec.res, self.spec.ndim)]
-        return f"rows={self.spec.total_rows}, F={self.feature_dim}, res={res}, kernel={self.kernel.value}"
+        res = [tuple(int(v) for v in r[:d]) for r, d in zip(self.layout.res, self.layout.ndim)]
+        return f"rows={self.layout.total_rows}, F={self.feature_dim}, res={res}, kernel={self.kernel.value}"
 
 
 class GridEncoder(TableEncoder):

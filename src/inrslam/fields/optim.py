@@ -19,8 +19,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from inrslam.fields.kernels import numba_interp as nk
-from inrslam.fields.kernels.function import unique_rows_of, workspace
+from inrslam.fields.kernels import sparse_rows
+from inrslam.fields.kernels.function import row_slots, unique_rows_of
 
 
 def is_lazy(p: torch.Tensor) -> bool:
@@ -28,26 +28,26 @@ def is_lazy(p: torch.Tensor) -> bool:
     return bool(getattr(p, "_inr_lazy", False))
 
 
-def _table_specs(module: nn.Module) -> dict[int, object]:
-    """id(table) -> InterpSpec of every ``TableEncoder`` in ``module`` (found by structure, survives deepcopy)."""
+def _table_layouts(module: nn.Module) -> dict[int, object]:
+    """id(table) -> TableLayout of every ``TableEncoder`` in ``module`` (found by structure, survives deepcopy)."""
     from inrslam.fields.encoders import TableEncoder  # encoders import kernels only; avoid a cycle at import
 
-    return {id(m.table): m.spec for m in module.modules() if isinstance(m, TableEncoder)}
+    return {id(m.table): m.layout for m in module.modules() if isinstance(m, TableEncoder)}
 
 
 class LazyAdam(torch.optim.Optimizer):
     """Adam(β1, β2, ε); parameter groups with ``lazy=True`` get row-wise lazy updates (see module docstring)."""
 
     def __init__(self, params, lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
-                 specs: dict | None = None):
+                 layouts: dict | None = None):
         super().__init__(params, dict(lr=lr, betas=betas, eps=eps, lazy=False))
         self._slots: dict[int, np.ndarray] = {}
-        self._specs = dict(specs or {})  # id(table) -> InterpSpec: share the kernels' (M,) scratch array
+        self._layouts = dict(layouts or {})  # id(table) -> TableLayout: share the kernels' (M,) scratch array
 
     def _slot(self, p: torch.Tensor) -> np.ndarray:
-        spec = self._specs.get(id(p))
-        if spec is not None and spec.total_rows == p.shape[0]:
-            return workspace(spec)
+        layout = self._layouts.get(id(p))
+        if layout is not None and layout.total_rows == p.shape[0]:
+            return row_slots(layout)
         ws = self._slots.get(id(p))
         if ws is None or ws.shape[0] != p.shape[0]:
             ws = self._slots[id(p)] = np.full(p.shape[0], -1, dtype=np.int32)
@@ -60,13 +60,13 @@ class LazyAdam(torch.optim.Optimizer):
                 g = g.coalesce()
                 return g.indices()[0], g.values()
             rows, vals = g._indices()[0].contiguous(), g._values().contiguous()
-            spec = self._specs.get(id(p))
-            if spec is not None and unique_rows_of(spec, rows, vals):
+            layout = self._layouts.get(id(p))
+            if layout is not None and unique_rows_of(layout, rows, vals):
                 return rows, vals  # straight from one fused backward: rows already unique
             vals2 = vals.reshape(vals.shape[0], -1)
             out_rows = np.empty(rows.shape[0], np.int64)
             out_vals = np.zeros(vals2.shape, dtype=vals2.numpy().dtype)
-            k = nk.unique_rows_sum(rows.numpy(), vals2.numpy(), self._slot(p), out_rows, out_vals)
+            k = sparse_rows.unique_rows_sum(rows.numpy(), vals2.numpy(), self._slot(p), out_rows, out_vals)
             return torch.from_numpy(out_rows[:k]), torch.from_numpy(out_vals[:k]).reshape((k,) + vals.shape[1:])
         rows = torch.nonzero(g.reshape(g.shape[0], -1).ne(0).any(1))[:, 0]
         return rows, g[rows]
@@ -103,7 +103,7 @@ class LazyAdam(torch.optim.Optimizer):
                     continue
                 if p.device.type == "cpu" and p.is_contiguous() and m.is_contiguous() and v.is_contiguous():
                     M = p.shape[0]
-                    nk.lazy_adam_rows(p.detach().reshape(M, -1).numpy(), m.reshape(M, -1).numpy(),
+                    sparse_rows.lazy_adam_rows(p.detach().reshape(M, -1).numpy(), m.reshape(M, -1).numpy(),
                                       v.reshape(M, -1).numpy(), rows.numpy(),
                                       vals.reshape(rows.shape[0], -1).contiguous().numpy(), step_size, b1, b2, eps,
                                       bc2_sqrt)
@@ -120,12 +120,12 @@ class LazyAdam(torch.optim.Optimizer):
 def make_optimizer(field: nn.Module, lr: float) -> LazyAdam:
     """Adam(0.9, 0.999, 1e-8) over all field parameters: group "decoder" (dense Adam) and group "tables"
     (lazy row-wise Adam); each group has 'lr' (the SLAM loop may set it to 0)."""
-    specs = _table_specs(field)
-    dense = [p for p in field.parameters() if p.requires_grad and not (is_lazy(p) or id(p) in specs)]
-    lazy = [p for p in field.parameters() if p.requires_grad and (is_lazy(p) or id(p) in specs)]
+    layouts = _table_layouts(field)
+    dense = [p for p in field.parameters() if p.requires_grad and not (is_lazy(p) or id(p) in layouts)]
+    lazy = [p for p in field.parameters() if p.requires_grad and (is_lazy(p) or id(p) in layouts)]
     groups = []
     if dense:
         groups.append(dict(params=dense, name="decoder", lazy=False))
     if lazy:
         groups.append(dict(params=lazy, name="tables", lazy=True))
-    return LazyAdam(groups, lr=lr, specs=specs)
+    return LazyAdam(groups, lr=lr, layouts=layouts)

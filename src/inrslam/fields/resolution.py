@@ -1,4 +1,4 @@
-"""Grid / plane / line resolutions from block sizes (docs/spec.md §3.1) as ``InterpSpec`` entries.
+"""Grid / plane / line resolutions from block sizes (docs/spec.md §3.1) as ``TableLayout`` entries.
 
 Default ("fixed") rule, per axis so cells are (nearly) cubic in metres: level l has cell size
 h_l = h_coarse·(h_fine/h_coarse)^(l/(L−1)) (h_fine for L = 1) and R_a = ⌈L_a/h_l⌉ + 1 vertices along an axis of

@@ -17,8 +17,8 @@ import numpy as np
 
 class BufferPool:
     """At most ``max_buffers`` kept base arrays; ``take`` returns a view of a free one (the smallest that fits, else
-    the largest grown), or a plain new array when all are in use. Not thread-safe: like the other scratch that the
-    kernels keep on an ``InterpSpec``, one spec serves one thread at a time."""
+    the largest grown), or a plain new array when all are in use. Not thread-safe: like the rest of the
+    ``KernelWorkspace`` that holds it (one per table layout), one pool serves one thread at a time."""
 
     def __init__(self, max_buffers: int = 8):
         self.max_buffers = max_buffers

@@ -21,12 +21,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from inrslam.fields.kernels.workspace import KernelWorkspace
+
 PRIMES = (1, 2654435761, 805459861)
 
 
-@dataclass(eq=False)
-class InterpSpec:
-    """Metadata of E entries over one (M, F) table (numpy arrays, all of leading size E)."""
+@dataclass(eq=False, slots=True)
+class TableLayout:
+    """Layout of E lookup entries over one (M, F) table: which rows each owns and how a point maps to them (numpy
+    arrays, all of leading size E)."""
 
     ndim: np.ndarray  # (E,) int64, D ∈ {1,2,3}
     axes: np.ndarray  # (E,3) int64, looked-up axes of p̂ (unused slots 0)
@@ -39,13 +42,23 @@ class InterpSpec:
     row_off: np.ndarray  # (E,) int64, first row of the entry
     lo: np.ndarray  # (E,3) float64, u's clamp range [lo, hi] = [0, R−1] ∩ [offset, scale + offset] (p̂ ∈ [0,1])
     hi: np.ndarray  # (E,3) float64
-    _torch_cache: dict = field(default_factory=dict, repr=False)
+    #: every entry is 3-D over axes (x, y, z): the specialised trilinear kernels apply (derived)
+    trilinear: bool = field(init=False)
+    #: the kernels' scratch for this layout (``workspace.py``); never copied or pickled
+    workspace: KernelWorkspace = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.trilinear = bool(np.all(self.ndim == 3) and np.all(self.axes == np.array([0, 1, 2])))
+        self.workspace = KernelWorkspace()
 
     def __getstate__(self) -> dict:
-        """Copies and pickles carry the dataclass fields only: the scratch arrays, buffer pools and caches that the
-        kernels keep as extra attributes on the spec are rebuilt on first use."""
-        fields = {f.name for f in dataclasses.fields(self)}
-        return {k: v for k, v in self.__dict__.items() if k in fields} | {"_torch_cache": {}}
+        """Copies and pickles carry the layout only: a copy starts with an empty workspace."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "workspace"}
+
+    def __setstate__(self, state: dict) -> None:
+        for k, v in state.items():
+            setattr(self, k, v)
+        self.workspace = KernelWorkspace()
 
     @property
     def n_entries(self) -> int:
@@ -56,7 +69,7 @@ class InterpSpec:
         return int(self.row_off[-1] + self.rows[-1]) if self.n_entries else 0
 
     @staticmethod
-    def build(entries: list[dict]) -> "InterpSpec":
+    def build(entries: list[dict]) -> "TableLayout":
         """Pack entries given as dicts with keys axes (list), res (list), scale, offset (lists), rows (int|None),
         hashed (bool). ``rows=None`` means exactly prod(res) rows (direct indexing)."""
         E = len(entries)
@@ -101,14 +114,15 @@ class InterpSpec:
         # the same as clamping u to [offset, scale + offset] (0·scale and 1·scale are exact)
         lo = np.maximum(offset, 0.0)
         hi = np.minimum(scale + offset, res - 1.0)
-        return InterpSpec(ndim, axes, res, scale, offset, stride, hashed, rows, row_off, lo, hi)
+        return TableLayout(ndim, axes, res, scale, offset, stride, hashed, rows, row_off, lo, hi)
 
     def torch_arrays(self, device: torch.device) -> dict[str, torch.Tensor]:
         """The metadata as tensors on ``device`` (cached), for the reference path."""
+        cache = self.workspace.torch_arrays
         key = str(device)
-        if key not in self._torch_cache:
-            self._torch_cache[key] = {
+        if key not in cache:
+            cache[key] = {
                 k: torch.as_tensor(getattr(self, k), device=device)
                 for k in ("axes", "res", "scale", "offset", "stride", "rows", "row_off")
             }
-        return self._torch_cache[key]
+        return cache[key]

@@ -1,275 +1,31 @@
-"""Fused CPU kernels (numba, ``parallel=True``) for multilinear table lookups; see ``spec.py`` for the maths.
+"""Fused CPU kernels (numba, ``parallel=True``) specialised to trilinear grid levels (every entry D = 3 over axes
+(x, y, z)): forward with the input Jacobian, its contraction, and the dense, row-slot and accumulator table
+backwards. Same maths and summation order as ``generic.py`` (see ``layout.py``).
 
-Layout: points ``xn (N,3)`` normalised to [0,1] (float32 or float64), table ``T (M,F)``, output ``(N,E,F)``.
-Race freedom: the forward and the input backward parallelise over points (each point owns its output row);
-the table backward parallelises over entries, whose row ranges are disjoint (or, for the few huge levels of a
-dense grid, over interleaved row parts of an entry), and loops over points serially inside a work item, so no two
-threads ever write the same table row and each row's sum is in point order (entries are dealt to threads in the
-order 0, E−1, 1, E−2, … so that each thread gets both cheap coarse and cache-missing fine levels).
-Trilinear kernels work in blocks of points: rows and weights first (structure-of-arrays, vectorised), then a
-prefetch of each corner's cache line (``prefetch.py``), then the gathers / scatters, which find them in cache.
-When the input gradient is needed, the forward also stores ∂out/∂p̂ so that the input backward is a contraction
-instead of a second lookup.
+The 8 corner rows come from per-axis terms,
+r = base + (i + c_x) + (j + c_y)·s_y + (k + c_z)·s_z   or   ((i+c_x) ⊕ (j+c_y)·P1 ⊕ (k+c_z)·P2) mod rows,
+and corners are summed in the same order as the generic kernel / reference (bit 0 = x).
+The kernels work in blocks of points: rows and weights first (structure-of-arrays, vectorised), then a prefetch
+of each corner's cache line (``prefetch.py``), then the gathers / scatters, which find them in cache. When the
+input gradient is needed, the forward also stores ∂out/∂p̂ so that the input backward is a contraction instead of
+a second lookup. The table backwards are race-free as the generic one's: work items own disjoint rows (a level,
+or for the few huge levels of a dense grid an interleaved row part of a level) and sum points in order.
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit, prange
 
+from inrslam.fields.kernels.indexing import BIT_CNT, P1, P2, balanced_entry, vertex_row
 from inrslam.fields.kernels.prefetch import prefetch_row, prefetch_row_w
 
-_P1 = np.int64(2654435761)
-_P2 = np.int64(805459861)
 _u = np.uint64  # an unsigned index: no negative-index wrap-around code (see ``_tri_block``)
 
 
 @njit(inline="always", cache=True)
-def _axis(p, scale, offset, res):
-    """Corner index i, weight w and du/dp̂ (0 where a clamp is active) of one axis."""
-    du = scale
-    if not p >= 0.0:  # (NaN lands here: a defined row, never an out-of-range one)
-        p = 0.0
-        du = 0.0
-    elif p > 1.0:
-        p = 1.0
-        du = 0.0
-    u = p * scale + offset
-    hi = res - 1.0
-    if u < 0.0:
-        u = 0.0
-        du = 0.0
-    elif u > hi:
-        u = hi
-        du = 0.0
-    i = np.int64(math.floor(u))
-    if i > res - 2:
-        i = res - 2
-    return i, u - i, du
-
-
-@njit(inline="always", cache=True)
-def _row(hashed, nrows, i0, i1, i2, s0, s1, s2):
-    """Row (relative to the entry) of integer vertex (i0, i1, i2)."""
-    if hashed:
-        return (i0 ^ (i1 * _P1) ^ (i2 * _P2)) & (nrows - 1)
-    return i0 * s0 + i1 * s1 + i2 * s2
-
-
-@njit(inline="always", cache=True)
-def _setup(xn, n, e, ndim, axes, res, scale, offset):
-    d = ndim[e]
-    i1 = np.int64(0)
-    i2 = np.int64(0)
-    w1 = 0.0
-    w2 = 0.0
-    d1 = 0.0
-    d2 = 0.0
-    i0, w0, d0 = _axis(np.float64(xn[n, axes[e, 0]]), scale[e, 0], offset[e, 0], res[e, 0])
-    if d > 1:
-        i1, w1, d1 = _axis(np.float64(xn[n, axes[e, 1]]), scale[e, 1], offset[e, 1], res[e, 1])
-    if d > 2:
-        i2, w2, d2 = _axis(np.float64(xn[n, axes[e, 2]]), scale[e, 2], offset[e, 2], res[e, 2])
-    return d, i0, i1, i2, w0, w1, w2, d0, d1, d2
-
-
-@njit(inline="always", cache=True)
-def _balanced(i, E):
-    """Entry handled by iteration i of a ``prange(E)``: 0, E−1, 1, E−2, … so that numba's static contiguous
-    chunks give every thread a mix of coarse (cheap) and fine (cache-missing) levels."""
-    if i % 2 == 0:
-        return i // 2
-    return E - 1 - i // 2
-
-
-@njit(inline="always", cache=True)
-def _corner(c, d, w0, w1, w2):
-    """Bits of corner c and its per-axis factors t_k = (bit ? w_k : 1 − w_k) (1 for unused axes)."""
-    b0 = c & 1
-    b1 = (c >> 1) & 1
-    b2 = (c >> 2) & 1
-    t0 = w0 if b0 else 1.0 - w0
-    t1 = 1.0
-    t2 = 1.0
-    if d > 1:
-        t1 = w1 if b1 else 1.0 - w1
-    if d > 2:
-        t2 = w2 if b2 else 1.0 - w2
-    return b0, b1, b2, t0, t1, t2
-
-
-@njit(parallel=True, cache=True, fastmath=False)
-def interp_forward(xn, table, ndim, axes, res, scale, offset, stride, hashed, rows, row_off, out):
-    """out[n,e,:] = Σ_c w_c(n,e) · T[row_c(n,e), :]   (out pre-zeroed, (N,E,F))."""
-    N = xn.shape[0]
-    E = ndim.shape[0]
-    F = table.shape[1]
-    for n in prange(N):
-        for e in range(E):
-            d, i0, i1, i2, w0, w1, w2, _d0, _d1, _d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
-            base = row_off[e]
-            for c in range(1 << d):
-                b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
-                wt = t0 * t1 * t2
-                r = base + _row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
-                                stride[e, 0], stride[e, 1], stride[e, 2])
-                for f in range(F):
-                    out[n, e, f] += wt * table[r, f]
-
-
-@njit(parallel=True, cache=True, fastmath=False)
-def interp_backward_x(xn, table, g, ndim, axes, res, scale, offset, stride, hashed, rows, row_off, gx):
-    """gx[n,a] += Σ_e Σ_c (∂w_c/∂u_k · du_k/dp̂_a) ⟨T[row_c], g[n,e]⟩   (gx pre-zeroed float64 (N,3))."""
-    N = xn.shape[0]
-    E = ndim.shape[0]
-    F = table.shape[1]
-    for n in prange(N):
-        for e in range(E):
-            d, i0, i1, i2, w0, w1, w2, d0, d1, d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
-            base = row_off[e]
-            gu0 = 0.0
-            gu1 = 0.0
-            gu2 = 0.0
-            for c in range(1 << d):
-                b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
-                r = base + _row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
-                                stride[e, 0], stride[e, 1], stride[e, 2])
-                dot = 0.0
-                for f in range(F):
-                    dot += table[r, f] * g[n, e, f]
-                s0 = 1.0 if b0 else -1.0
-                s1 = 1.0 if b1 else -1.0
-                s2 = 1.0 if b2 else -1.0
-                gu0 += dot * s0 * t1 * t2
-                gu1 += dot * t0 * s1 * t2
-                gu2 += dot * t0 * t1 * s2
-            gx[n, axes[e, 0]] += gu0 * d0
-            if d > 1:
-                gx[n, axes[e, 1]] += gu1 * d1
-            if d > 2:
-                gx[n, axes[e, 2]] += gu2 * d2
-
-
-@njit(parallel=True, cache=True, fastmath=False)
-def interp_backward_table_dense(xn, g, ndim, axes, res, scale, offset, stride, hashed, rows, row_off, grad):
-    """grad[row_c] += w_c · g[n,e] into a pre-zeroed dense (M,F) array (parallel over entries)."""
-    N = xn.shape[0]
-    E = ndim.shape[0]
-    F = grad.shape[1]
-    for ie in prange(E):
-        e = _balanced(ie, E)
-        base = row_off[e]
-        for n in range(N):
-            d, i0, i1, i2, w0, w1, w2, _d0, _d1, _d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
-            for c in range(1 << d):
-                b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
-                wt = t0 * t1 * t2
-                r = base + _row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
-                                stride[e, 0], stride[e, 1], stride[e, 2])
-                for f in range(F):
-                    grad[r, f] += wt * g[n, e, f]
-
-
-@njit(parallel=True, cache=True, fastmath=False)
-def interp_backward_table_sparse(xn, g, ndim, axes, res, scale, offset, stride, hashed, rows, row_off,
-                                 slot, cap_off, out_rows, out_vals, counts):
-    """Touched rows (non-zero interpolation weight) and their summed gradients, per entry: rows
-    out_rows[cap_off[e] : cap_off[e] + counts[e]] (unique, in first-touch order), values out_vals[same] (written on
-    first touch, so they need not be pre-zeroed). ``slot`` (M,) int32 must be all −1 on
-    entry and is restored to −1 on exit; cost is O(N·2^D) per entry, independent of the table size."""
-    N = xn.shape[0]
-    E = ndim.shape[0]
-    F = out_vals.shape[1]
-    for ie in prange(E):
-        e = _balanced(ie, E)
-        base = row_off[e]
-        cb = cap_off[e]
-        cnt = 0
-        for n in range(N):
-            d, i0, i1, i2, w0, w1, w2, _d0, _d1, _d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
-            for c in range(1 << d):
-                b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
-                wt = t0 * t1 * t2
-                if wt == 0.0:  # zero-weight corner: not touched
-                    continue
-                r = base + _row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
-                                stride[e, 0], stride[e, 1], stride[e, 2])
-                s = slot[r]
-                if s < 0:  # first touch: write (out_vals need not be zeroed)
-                    s = cnt
-                    slot[r] = cnt
-                    out_rows[cb + cnt] = r
-                    cnt += 1
-                    for f in range(F):
-                        out_vals[cb + s, f] = wt * g[n, e, f]
-                else:
-                    for f in range(F):
-                        out_vals[cb + s, f] += wt * g[n, e, f]
-        counts[e] = cnt
-        for k in range(cnt):
-            slot[out_rows[cb + k]] = -1
-
-
-@njit(cache=True)
-def unique_rows_sum(rows, vals, slot, out_rows, out_vals):
-    """Sum duplicate rows: returns k, with out_rows[:k] unique and out_vals[:k] (pre-zeroed) their sums.
-    ``slot`` (M,) int32 all −1 on entry and exit. O(nnz), no sort."""
-    cnt = 0
-    F = vals.shape[1]
-    for j in range(rows.shape[0]):
-        r = rows[j]
-        s = slot[r]
-        if s < 0:
-            s = cnt
-            slot[r] = cnt
-            out_rows[cnt] = r
-            cnt += 1
-        for f in range(F):
-            out_vals[s, f] += vals[j, f]
-    for k in range(cnt):
-        slot[out_rows[k]] = -1
-    return cnt
-
-
-#: Rows prefetched ahead by ``lazy_adam_rows``.
-_ADAM_AHEAD = 16
-
-
-@njit(parallel=True, cache=True, fastmath=False)
-def lazy_adam_rows(p, m, v, rows, g, step_size, beta1, beta2, eps, bc2_sqrt):
-    """Adam on the given (unique) rows only:
-    m_r ← β1 m_r + (1−β1) g_r;  v_r ← β2 v_r + (1−β2) g_r²;  p_r ← p_r − step_size · m_r / (√v_r / √bc2 + ε),
-    step_size = lr / (1 − β1^t), bc2 = 1 − β2^t (torch.optim.Adam's formula)."""
-    F = p.shape[1]
-    K = rows.shape[0]
-    for k in prange(K):
-        if k + _ADAM_AHEAD < K:  # rows are scattered over a large table: fetch a few rows ahead
-            q = rows[k + _ADAM_AHEAD]
-            prefetch_row_w(p, q)
-            prefetch_row_w(m, q)
-            prefetch_row_w(v, q)
-        r = rows[k]
-        for f in range(F):
-            gi = np.float64(g[k, f])
-            mi = beta1 * m[r, f] + (1.0 - beta1) * gi
-            vi = beta2 * v[r, f] + (1.0 - beta2) * gi * gi
-            m[r, f] = mi
-            v[r, f] = vi
-            p[r, f] -= step_size * mi / (math.sqrt(vi) / bc2_sqrt + eps)
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Trilinear specialisation (grid levels: D = 3, axes (x,y,z)): the 8 corner rows come from per-axis terms,
-# r = base + (i + c_x) + (j + c_y)·s_y + (k + c_z)·s_z   or   ((i+c_x) ⊕ (j+c_y)·P1 ⊕ (k+c_z)·P2) mod rows,
-# and corners are summed in the same order as the generic kernel / reference (bit 0 = x).
-# ---------------------------------------------------------------------------------------------------------------
-
-
-@njit(inline="always", cache=True)
 def _axis_lean(p, scale, offset, lo, hi, res):
-    """``_axis`` with its two clamps merged into one of u to [lo, hi] (``InterpSpec.lo/hi``); same results."""
+    """``_axis`` with its two clamps merged into one of u to [lo, hi] (``TableLayout.lo/hi``); same results."""
     u = p * scale + offset
     du = scale
     if not u >= lo:  # (NaN lands here: a defined row, never an out-of-range one)
@@ -293,10 +49,10 @@ def _tri(px, py, pz, e, res, scale, offset, lo, hi, stride, hashed, rows, row_of
     base = row_off[e]
     if hashed[e]:
         mask = rows[e] - 1
-        y0 = iy * _P1
-        y1 = y0 + _P1
-        z0 = iz * _P2
-        z1 = z0 + _P2
+        y0 = iy * P1
+        y1 = y0 + P1
+        z0 = iz * P2
+        z1 = z0 + P2
         x1 = ix + 1
         r0 = base + ((ix ^ y0 ^ z0) & mask)
         r1 = base + ((x1 ^ y0 ^ z0) & mask)
@@ -398,7 +154,7 @@ def _tri_block(xn, n0, n1, e0, e1, res, scale, offset, lo, hi, stride, hashed, r
             by = (c >> 1) & 1
             bz = c >> 2
             for j in range(m):
-                R[k, _u(c), _u(j)] = base + _row(h, n_rows, I[0, _u(j)] + bx, I[1, _u(j)] + by, I[2, _u(j)] + bz,
+                R[k, _u(c), _u(j)] = base + vertex_row(h, n_rows, I[0, _u(j)] + bx, I[1, _u(j)] + by, I[2, _u(j)] + bz,
                                                  sx, sy, sz)
     if mode == 0:
         return
@@ -431,7 +187,7 @@ def tri_backward_table_dense(xn, g, res, scale, offset, lo, hi, stride, hashed, 
     E = res.shape[0]
     F = grad.shape[1]
     for ie in prange(E):
-        e = _balanced(ie, E)
+        e = balanced_entry(ie, E)
         for n in range(N):
             r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = _tri(
                 np.float64(xn[n, 0]), np.float64(xn[n, 1]), np.float64(xn[n, 2]), e, res, scale, offset, lo, hi,
@@ -479,7 +235,7 @@ def tri_backward_table_sparse(xn, g, res, scale, offset, lo, hi, stride, hashed,
     P = n_parts
     for it in prange(E * P):
         p = it // E
-        e = _balanced(it % E, E)
+        e = balanced_entry(it % E, E)
         item = p * E + e
         base = row_off[e]
         cb = cap_off[item]
@@ -506,32 +262,6 @@ def tri_backward_table_sparse(xn, g, res, scale, offset, lo, hi, stride, hashed,
         counts[item] = cnt
         for k in range(cnt):
             slot[out_rows[cb + k]] = -1
-
-
-@njit(inline="always", cache=True)
-def _exclusive_cumsum(counts):
-    """(E+1,) int64 offsets: dst[0] = 0, dst[e+1] = dst[e] + counts[e]."""
-    dst = np.zeros(counts.shape[0] + 1, np.int64)
-    for e in range(counts.shape[0]):
-        dst[e + 1] = dst[e] + counts[e]
-    return dst
-
-
-@njit(parallel=True, cache=True)
-def compact_entries(cap_off, counts, out_rows, out_vals, rows_dst, vals_dst):
-    """Concatenate the per-entry blocks out_rows/out_vals[cap_off[e] : cap_off[e] + counts[e]] into rows_dst /
-    vals_dst (of length Σ counts), entries in order (parallel over entries)."""
-    E = counts.shape[0]
-    F = out_vals.shape[1]
-    dst = _exclusive_cumsum(counts)
-    for ie in prange(E):
-        e = _balanced(ie, E)
-        src = cap_off[e]
-        d0 = dst[e]
-        for k in range(counts[e]):
-            rows_dst[d0 + k] = out_rows[src + k]
-            for f in range(F):
-                vals_dst[d0 + k, f] = out_vals[src + k, f]
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -616,14 +346,9 @@ def tri_backward_x_jac(jac, g, gx):
 
 # ---------------------------------------------------------------------------------------------------------------
 # Sparse table gradient through a dense accumulator (tables small enough to keep an (M,F) scratch array):
-# no per-row slot indirection or first-touch bookkeeping in the hot loop, rows come out sorted (coalesced).
+# no per-row slot indirection or first-touch bookkeeping in the hot loop, rows come out sorted (coalesced) by
+# ``sparse_rows.drain_marked_rows``.
 # ---------------------------------------------------------------------------------------------------------------
-
-
-#: Set bits of every byte value: _BIT_CNT[m] of them, at positions _BIT_POS[m, :_BIT_CNT[m]] (ascending).
-_BIT_CNT = np.array([bin(m).count("1") for m in range(256)], np.int64)
-_BIT_POS = np.array([[b for b in range(8) if (m >> b) & 1] + [0] * (8 - bin(m).count("1")) for m in range(256)],
-                    np.int64)
 
 
 @njit(parallel=True, cache=True)
@@ -654,7 +379,7 @@ def tri_backward_table_acc(xn, gT, res, scale, offset, lo, hi, stride, hashed, r
     E = res.shape[0]
     F = acc.shape[1]
     for ie in prange(E):
-        e = _balanced(ie, E)
+        e = balanced_entry(ie, E)
         base = row_off[e]
         mo = mark_off[e]
         X, I, R, W = _block_scratch(1)
@@ -676,32 +401,5 @@ def tri_backward_table_acc(xn, gT, res, scale, offset, lo, hi, stride, hashed, r
                             acc[_u(R[0, c, j]), f] += w[c] * gv
         c = 0
         for b in range(mo, mo + (rows[e] + 7) // 8):
-            c += _BIT_CNT[mark[b]]
+            c += BIT_CNT[mark[b]]
         counts[e] = c
-
-
-@njit(parallel=True, cache=True)
-def drain_marked_rows(rows, row_off, mark_off, counts, acc, mark, rows_dst, vals_dst):
-    """Move the marked rows of acc (bitmap layout of ``tri_backward_table_acc``) to rows_dst / vals_dst (length
-    Σ counts, ascending row order) and reset acc and mark to zero there (parallel over entries)."""
-    E = counts.shape[0]
-    F = acc.shape[1]
-    dst = _exclusive_cumsum(counts)
-    for ie in prange(E):
-        e = _balanced(ie, E)
-        k = dst[e]
-        base = row_off[e]
-        mo = mark_off[e]
-        for b in range(mo, mo + (rows[e] + 7) // 8):
-            m = mark[b]
-            if m == 0:
-                continue
-            mark[b] = 0
-            r0 = base + (b - mo) * 8
-            for i in range(_BIT_CNT[m]):  # the set bits of m, no branch per bit
-                r = r0 + _BIT_POS[m, i]
-                rows_dst[k] = r
-                for f in range(F):
-                    vals_dst[k, f] = acc[r, f]
-                    acc[r, f] = 0.0
-                k += 1
