@@ -7,14 +7,16 @@ its registry is picked up here automatically.
 
 from __future__ import annotations
 
+import typing
+
 import numpy as np
 import pytest
 import torch
 
-from inrslam.config import load_config
+from inrslam.config import RunConfig, load_config
 from inrslam.fields import ENCODINGS
 from inrslam.rendering import RENDERERS
-from inrslam.slam.model import SceneModel
+from inrslam.slam.model import ModelConfig, SceneModel
 
 BOUNDS = np.array([[-1.0, 1.0], [-0.8, 0.8], [-0.2, 1.4]])  # metres
 RAYS = 16
@@ -66,3 +68,9 @@ def test_every_field_and_renderer_train_through_the_scene_model(encoding, render
     # tracking differentiates the same loss with respect to the camera pose
     assert torch.isfinite(c2w.grad).all() and c2w.grad[:3].abs().sum() > 0
     assert set(model.make_optimizers(1e-2)) == ({"field", "render"} if learnable else {"field"})
+
+
+def test_run_config_has_every_section_the_scene_model_reads():
+    """`ModelConfig` (slam may not import the config layer) names RunConfig's sections with their types."""
+    wanted, run = typing.get_type_hints(ModelConfig), typing.get_type_hints(RunConfig)
+    assert wanted and all(run.get(name) is typ for name, typ in wanted.items()), (wanted, run)
