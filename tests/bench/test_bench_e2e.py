@@ -11,27 +11,8 @@ import pytest
 from inrslam.bench.leaderboard import COLUMNS
 from inrslam.bench.spec import expand, resolve_config
 from inrslam.bench.sweep import run_sweep
-from inrslam.bench.worker import has_checkpoint, is_complete
 from inrslam.errors import ConfigError
-
-
-def _pipeline_ready() -> bool:
-    try:
-        import inrslam.eval.run  # noqa: F401
-        import inrslam.fields  # noqa: F401
-        import inrslam.rendering  # noqa: F401
-        import inrslam.runner  # noqa: F401
-        import inrslam.scenes  # noqa: F401
-        from inrslam.config.loader import load_config
-
-        load_config(preset="quick")
-        return True
-    except Exception:  # noqa: BLE001 - the SLAM pipeline is written concurrently
-        return False
-
-
-pytestmark = pytest.mark.skipif(not _pipeline_ready(), reason="SLAM pipeline (fields, rendering, scenes, eval.run, "
-                                                              "config) does not import yet")
+from inrslam.io.rundir import RunDir
 
 
 class Stop(Exception):
@@ -50,8 +31,8 @@ def test_tiny_sweep_interrupt_resume_leaderboard(tmp_path):
     res = run_sweep("tiny", out, jobs=2, on_result=lambda r: seen.append(r["name"]) or len(seen) < 2, quiet=True,
                     report=False)
     assert res.interrupted and res.count("complete") == 2 and res.count("pending") == 2, res.results
-    assert all(is_complete(out / n) for n in seen)
-    assert sum(is_complete(out / r.name) for r in runs) == 2
+    assert all(RunDir(out / n).is_complete() for n in seen)
+    assert sum(RunDir(out / r.name).is_complete() for r in runs) == 2
 
     # the last run stopped half-way after a checkpoint: the resumed sweep continues it from there
     partial = next(r for r in runs if not (out / r.name).exists())
@@ -62,7 +43,7 @@ def test_tiny_sweep_interrupt_resume_leaderboard(tmp_path):
 
     with pytest.raises(Stop):
         run_slam(resolve_config(partial), out / partial.name, progress=stop_at_checkpoint)
-    assert has_checkpoint(out / partial.name) and not is_complete(out / partial.name)
+    assert RunDir(out / partial.name).has_checkpoint() and not RunDir(out / partial.name).is_complete()
     before = {n: (out / n / "metrics.json").read_text() for n in seen}
 
     res2 = run_sweep("tiny", out, jobs=2, quiet=True)

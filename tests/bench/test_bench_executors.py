@@ -10,7 +10,8 @@ import pytest
 from inrslam.bench.executors import EXECUTORS
 from inrslam.bench.sweep import run_sweep
 from inrslam.bench.testing import executed_runs
-from inrslam.bench.worker import is_complete, run_one
+from inrslam.bench.worker import run_one
+from inrslam.io.rundir import RunDir
 
 FAKE = "inrslam.bench.testing:fake_run"
 
@@ -51,7 +52,7 @@ def test_local_pool_records_failures_crashes_and_resumes(tmp_path):
     for name in ("room__fail__density__quick__s0", "room__crash__direct__quick__s0"):
         assert (out / name / "error.txt").read_text().strip()
     for name in ("room__dense__density__quick__s0", "room__hash__direct__quick__s0"):
-        assert is_complete(out / name)
+        assert RunDir(out / name).is_complete()
     # the leaderboard has the 4 complete runs with their own values
     rows = list(csv.DictReader(open(out / "report" / "leaderboard.csv")))
     assert len(rows) == 4

@@ -155,13 +155,3 @@ def test_ate_over_frames_matches_rmse_of_alignment(tmp_path):
     assert math.sqrt((e ** 2).mean()) == pytest.approx(ate(est, gt, "se3")["rmse"])
     assert ate_over_frames(tmp_path / "nothing") is None
 
-
-def test_ate_over_frames_fallback_without_eval_package(tmp_path, monkeypatch):
-    import sys
-
-    d = write_fake_run(tmp_path / "run", "dense", "density", "room", 0, frames=20, noise=0.03)
-    x_ref, e_ref = ate_over_frames(d)
-    monkeypatch.setitem(sys.modules, "inrslam.eval.trajectory", None)  # import now raises ImportError
-    x, e = ate_over_frames(d)
-    assert list(x) == list(x_ref)
-    assert e == pytest.approx(e_ref, abs=1e-9)

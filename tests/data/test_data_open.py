@@ -10,6 +10,7 @@ from inrslam.data import DATASETS, DataConfig, DatasetView, detect_layout, estim
 from inrslam.datasets import open_dataset
 from inrslam.data.bounds import backproject_world
 from inrslam.errors import ConfigError, DataError
+from inrslam.scenes import export
 
 
 def test_registry_names():
@@ -130,9 +131,6 @@ def test_estimate_bounds_identity_for_invalid_frame0(tmp_path):
 
 
 def _builtin(monkeypatch, tmp_path):
-    scenes = pytest.importorskip("inrslam.scenes")
-    if not hasattr(scenes, "load_scene"):
-        pytest.skip("inrslam.scenes.load_scene not written yet")
     monkeypatch.setenv("INRSLAM_CACHE", str(tmp_path / "cache"))
     cfg = DataConfig(path="builtin:room")
     cfg.builtin.width, cfg.builtin.height, cfg.builtin.frames = 32, 24, 4
@@ -154,7 +152,6 @@ def test_builtin_scene(monkeypatch, tmp_path):
 @pytest.mark.parametrize("fmt", ["replica", "tum"])
 def test_builtin_export_round_trip(monkeypatch, tmp_path, fmt):
     """A built-in scene exported to a public layout reads back as the same frames (scenes x data contract)."""
-    export = pytest.importorskip("inrslam.scenes.export")
     cfg = _builtin(monkeypatch, tmp_path)
     src = open_dataset(cfg)
     out = getattr(export, f"export_{fmt}")(src, tmp_path / f"{fmt}_out")

@@ -13,6 +13,7 @@ from inrslam.fields import (
     FieldConfig,
     KernelChoice,
     build_field,
+    make_optimizer,
     model_size_mb,
     param_count,
 )
@@ -23,23 +24,47 @@ SMALL = dict(block_coarse=0.3, block_fine=0.1, app_block_coarse=0.3, app_block_f
              mlp_width=32, log2_hashmap_size=8)
 
 
+# every registered F: an encoding added to the registry is picked up by the generic tests below
+ENCODING_NAMES = ENCODINGS.names()
+PAPER_ENCODINGS = ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+tri"]
+
+
+def small(encoding: str, **kw) -> FieldConfig:
+    """A tiny field of `encoding` (30 / 10 cm cells, 2^8 hash rows, 32-wide MLP) so the generic tests stay fast."""
+    return FieldConfig(encoding=encoding, **{**SMALL, **kw})
+
+
 def _points(n=256, margin=0.2):
     lo, hi = BOX[:, 0] - margin, BOX[:, 1] + margin
     return torch.from_numpy(lo + (hi - lo) * np.random.default_rng(1).random((n, 3))).float()
 
 
+def _has_tables(encoding: str) -> bool:
+    """Whether the field looks features up in tables (grids / planes / lines), i.e. has kernel choices."""
+    return any(n.endswith("table") for n, _ in build_field(small(encoding), BOX).named_parameters())
+
+
+TABLE_ENCODINGS = [e for e in ENCODING_NAMES if _has_tables(e)]
+
+
+def _grad(p: torch.Tensor) -> torch.Tensor:
+    return p.grad.coalesce().values() if p.grad.is_sparse else p.grad
+
+
 def test_registry_names():
-    assert ENCODINGS.names() == ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+tri"]
+    assert ENCODING_NAMES[:len(PAPER_ENCODINGS)] == PAPER_ENCODINGS  # the paper's seven, in its order, first
     assert all(e.help for e in ENCODINGS.entries())
+    assert "mlp" not in TABLE_ENCODINGS and {"dense", "hash", "triplane", "tensorf"} <= set(TABLE_ENCODINGS)
 
 
 @pytest.mark.parametrize("coupling", list(Coupling))
-@pytest.mark.parametrize("encoding", ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+tri"])
+@pytest.mark.parametrize("encoding", ENCODING_NAMES)
 def test_every_field_builds_evaluates_and_backpropagates(encoding, coupling):
-    field = build_field(FieldConfig(encoding=encoding, coupling=coupling, **SMALL), BOX)
+    field = build_field(small(encoding, coupling=coupling), BOX)
     x = _points().requires_grad_()
     out = field(x)
     assert out.sdf.shape == (256,) and out.rgb_logits.shape == (256, 3)
+    assert out.sdf.dtype == out.rgb_logits.dtype == torch.float32
     assert torch.isfinite(out.sdf).all() and torch.isfinite(out.rgb_logits).all()
     torch.testing.assert_close(field.sdf(x), out.sdf)
     w = torch.randn(256, 4)
@@ -47,17 +72,91 @@ def test_every_field_builds_evaluates_and_backpropagates(encoding, coupling):
     loss.backward()
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
     for name, p in field.named_parameters():
-        g = p.grad.coalesce().values() if p.grad.is_sparse else p.grad
-        assert torch.isfinite(g).all(), name
-        assert g.abs().sum() > 0, f"{encoding}/{coupling.value}: no gradient for {name}"
+        assert torch.isfinite(_grad(p)).all(), name
+        assert _grad(p).abs().sum() > 0, f"{encoding}/{coupling.value}: no gradient for {name}"
+    # the optimiser's groups (dense decoder Adam / lazy table Adam) hold every parameter once, each reached
+    groups = make_optimizer(field, lr=1e-2).param_groups
+    ids = [id(p) for g in groups for p in g["params"]]
+    assert sorted(ids) == sorted(id(p) for p in field.parameters())
+    for g in groups:
+        assert any(_grad(p).abs().sum() > 0 for p in g["params"]), f"{encoding}: group {g['name']} gets no gradient"
     if encoding in ("triplane", "tensorf"):
         assert out.sdf.abs().max() <= 1.0  # tanh SDF
 
 
-@pytest.mark.parametrize("encoding", ["dense", "hash", "triplane", "tensorf", "hash+tri"])
+@pytest.mark.parametrize("encoding", ENCODING_NAMES)
+def test_every_field_is_deterministic_per_seed(encoding):
+    def build(seed):
+        torch.manual_seed(seed)
+        return build_field(small(encoding), BOX)
+
+    x = _points(64)
+    a, b, c = build(0), build(0), build(1)
+    for (na, pa), (nb, pb) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert na == nb and torch.equal(pa, pb), na
+    oa, ob, oc = a(x), b(x), c(x)
+    assert torch.equal(oa.sdf, ob.sdf) and torch.equal(oa.rgb_logits, ob.rgb_logits)
+    assert not torch.equal(oa.sdf, oc.sdf) and not torch.equal(oa.rgb_logits, oc.rgb_logits)
+
+
+@pytest.mark.parametrize("encoding", ENCODING_NAMES)
+def test_every_field_depends_only_on_the_position_in_its_box(encoding):
+    """The same seed over a translated box gives the same field, translated (points in and outside the box)."""
+    shift = torch.tensor([2.5, -1.0, 0.75])
+    fields = []
+    for box in (BOX, BOX + shift.numpy()[:, None]):
+        torch.manual_seed(0)
+        fields.append(build_field(small(encoding), box))
+    x = _points(128)
+    a, b = fields[0](x), fields[1](x + shift)
+    torch.testing.assert_close(b.sdf, a.sdf, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(b.rgb_logits, a.rgb_logits, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("encoding", ENCODING_NAMES)
+def test_every_field_is_finite_far_outside_its_box(encoding):
+    field = build_field(small(encoding), BOX)
+    x = torch.tensor([[1e6, -1e6, 1e6], [-40.0, 0.0, 0.4], [0.0, 0.0, 1e3]], requires_grad=True)
+    out = field(x)
+    assert torch.isfinite(out.sdf).all() and torch.isfinite(out.rgb_logits).all()
+    (out.sdf.sum() + out.rgb_logits.sum()).backward()
+    assert torch.isfinite(x.grad).all()
+    assert all(torch.isfinite(_grad(p)).all() for p in field.parameters())
+
+
+@pytest.mark.parametrize("encoding", ENCODING_NAMES)
+def test_every_field_rejects_bad_bounds(encoding):
+    for bad in (np.array([[0, 1], [1, 0], [0, 1]]), np.array([[0, 1], [0, np.nan], [0, 1]]), np.zeros((2, 2))):
+        with pytest.raises(ConfigError, match="field bounds"):
+            build_field(small(encoding), bad)
+
+
+@pytest.mark.parametrize("encoding", ENCODING_NAMES)
+def test_every_field_trains_and_counts_its_size(encoding):
+    """A few steps of the field's own optimiser fit a target; the model size counts every parameter."""
+    field = build_field(small(encoding), BOX)
+    n = sum(p.numel() for p in field.parameters())
+    assert param_count(field) == n > 0 and model_size_mb(field) == pytest.approx(4 * n / 2**20)
+    x = _points(128)
+    target = 0.5 * torch.sin(4 * x).sum(-1)
+
+    def loss():
+        out = field(x)
+        return (out.sdf - target).square().mean() + (out.rgb_logits - 0.3).square().mean()
+
+    opt = make_optimizer(field, lr=1e-2)
+    before = float(loss().detach())
+    for _ in range(10):
+        opt.zero_grad()
+        loss().backward()
+        opt.step()
+    assert float(loss().detach()) < 0.9 * before
+
+
+@pytest.mark.parametrize("encoding", TABLE_ENCODINGS)
 def test_fused_and_reference_fields_agree(encoding):
     torch.manual_seed(3)
-    cfg = FieldConfig(encoding=encoding, coupling=Coupling.COUPLED, kernel=KernelChoice.NUMBA, **SMALL)
+    cfg = small(encoding, coupling=Coupling.COUPLED, kernel=KernelChoice.NUMBA)
     fused = build_field(cfg, BOX)
     ref = build_field(FieldConfig(**{**cfg.__dict__, "kernel": KernelChoice.TORCH}), BOX)
     ref.load_state_dict(fused.state_dict())
@@ -79,15 +178,16 @@ def test_fused_and_reference_fields_agree(encoding):
         torch.testing.assert_close(grads[0][2][n], grads[1][2][n], rtol=1e-4, atol=1e-5, msg=n)
 
 
-def test_outside_points_read_the_box_face():
-    field = build_field(FieldConfig(encoding="hash", **SMALL), BOX)
+@pytest.mark.parametrize("encoding", TABLE_ENCODINGS)
+def test_outside_points_read_the_box_face(encoding):
+    """Every table lookup of the field clamps p̂ to the unit box: an outside point reads the nearest face."""
+    field = build_field(small(encoding), BOX)
+    encoders = [m for m in field.modules() if isinstance(getattr(m, "table", None), torch.nn.Parameter)]
+    assert encoders
     inside = torch.tensor([[0.6, 0.0, 0.4], [0.1, -0.5, 0.8]])
     outside = torch.tensor([[5.0, 0.0, 0.4], [0.1, -9.0, 30.0]])
-    feats_in = field.encoder(field.normalise(inside))
-    feats_out = field.encoder(field.normalise(outside))
-    torch.testing.assert_close(feats_in, feats_out)
-    out = field(torch.tensor([[1e6, -1e6, 1e6]]))
-    assert torch.isfinite(out.sdf).all() and torch.isfinite(out.rgb_logits).all()
+    for enc in encoders:
+        torch.testing.assert_close(enc(field.normalise(inside)), enc(field.normalise(outside)))
 
 
 def test_fixed_resolution_is_cubic_in_metres():

@@ -8,15 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 import trimesh
 from PIL import Image
 
-from inrslam.geometry.camera import backproject_depth, project
+from inrslam.geometry.pinhole import backproject_np, project_np
 from inrslam.io.trajectory import read_tum
 from inrslam.scenes import (DEFAULT_SCENE, SceneConfig, export_replica, export_tum, list_scenes, load_scene)
 from inrslam.scenes import store
-from inrslam.scenes.geometry import distance_to_mesh
 from inrslam.scenes.layouts import SCENES
 from inrslam.scenes.sensor import hole_mask
 from inrslam.scenes.trajectory import camera_poses, dense_loop
@@ -41,6 +39,43 @@ def room(cache):
 def _rot_deg(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
     rel = np.einsum("...ji,...jk->...ik", Ra, Rb)
     return np.degrees(np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1) / 2, -1, 1)))
+
+
+def distance_to_mesh(points: np.ndarray, mesh: trimesh.Trimesh, max_dist: float = np.inf,
+                     chunk: int = 128) -> np.ndarray:
+    """Exact point-to-surface distance (brute force with a bounding-box prefilter; no rtree needed): the oracle the
+    scene checks measure clearance and depth consistency with.
+
+    Args:
+        points: (N, 3) metres.
+        mesh: triangle mesh.
+        max_dist: distances above this are reported as `max_dist` (prunes far triangles).
+        chunk: points per batch.
+    Returns:
+        (N,) float64 metres, min(distance, max_dist).
+    """
+    points = np.asarray(points, dtype=np.float64)
+    tris = mesh.triangles
+    lo, hi = tris.min(axis=1), tris.max(axis=1)
+    out = np.full(len(points), max_dist, dtype=np.float64)
+    for s in range(0, len(points), chunk):
+        p = points[s:s + chunk]
+        gap = np.maximum(lo[None] - p[:, None], 0) + np.maximum(p[:, None] - hi[None], 0)
+        box_d = np.sqrt((gap * gap).sum(-1))  # (n, F) lower bound of the distance to each triangle
+        if np.isfinite(max_dist):
+            pi, fi = np.nonzero(box_d < max_dist)
+        else:
+            # keep triangles whose box distance is below the smallest upper bound (farthest box corner)
+            far = np.sqrt((np.maximum(np.abs(p[:, None] - lo[None]), np.abs(p[:, None] - hi[None])) ** 2).sum(-1))
+            pi, fi = np.nonzero(box_d <= far.min(axis=1, keepdims=True))
+        if len(pi) == 0:
+            continue
+        closest = trimesh.triangles.closest_point(tris[fi], p[pi])
+        d = np.linalg.norm(closest - p[pi], axis=1)
+        res = out[s:s + chunk]
+        np.minimum.at(res, pi, d)
+        out[s:s + chunk] = res
+    return out
 
 
 def test_registry_lists_three_scenes_and_names_close_match():
@@ -126,12 +161,10 @@ def _reprojection_error(src, dst, c2w_src, c2w_dst) -> tuple[float, float]:
     pixels whose four neighbours disagree by more than 5% (depth edges) are skipped.
     """
     intr = src.intrinsics
-    pts = backproject_depth(torch.from_numpy(src.depth).double(), intr).reshape(-1, 3)
-    T = torch.from_numpy(np.linalg.inv(c2w_dst) @ c2w_src)
-    pc = pts @ T[:3, :3].T + T[:3, 3]
-    uv, z = project(pc, intr)
-    u, v = uv[:, 0].numpy(), uv[:, 1].numpy()
-    ok = (z.numpy() > 0.1) & (u >= 0) & (u <= intr.width - 1) & (v >= 0) & (v <= intr.height - 1)
+    pts = backproject_np(src.depth, intr.fx, intr.fy, intr.cx, intr.cy)
+    T = np.linalg.inv(c2w_dst) @ c2w_src
+    u, v, z = project_np(pts @ T[:3, :3].T + T[:3, 3], intr.fx, intr.fy, intr.cx, intr.cy)
+    ok = (z > 0.1) & (u >= 0) & (u <= intr.width - 1) & (v >= 0) & (v <= intr.height - 1)
     u0 = np.clip(np.floor(u[ok]).astype(int), 0, intr.width - 2)
     v0 = np.clip(np.floor(v[ok]).astype(int), 0, intr.height - 2)
     fu, fv = u[ok] - u0, v[ok] - v0
@@ -139,7 +172,7 @@ def _reprojection_error(src, dst, c2w_src, c2w_dst) -> tuple[float, float]:
     q = np.stack([inv[v0, u0], inv[v0, u0 + 1], inv[v0 + 1, u0], inv[v0 + 1, u0 + 1]])
     smooth = q.max(0) < 1.05 * q.min(0)
     inv_i = (q[0] * (1 - fu) + q[1] * fu) * (1 - fv) + (q[2] * (1 - fu) + q[3] * fu) * fv
-    err = np.abs(z.numpy()[ok] - 1.0 / inv_i)[smooth]
+    err = np.abs(z[ok] - 1.0 / inv_i)[smooth]
     return float(np.median(err)), float(ok.mean())
 
 

@@ -18,7 +18,6 @@ from pathlib import Path
 import yaml
 
 from inrslam.bench.spec import scene_short_name
-from inrslam.bench.worker import is_complete
 from inrslam.io.rundir import RunDir
 
 MISSING = "–"
@@ -140,7 +139,7 @@ def read_run(run_dir: str | os.PathLike) -> RunRecord:
     if rd.error.is_file():
         lines = [ln for ln in rd.error.read_text().splitlines() if ln.strip()]
         err = lines[-1] if lines else "error"
-    complete = is_complete(d)
+    complete = rd.is_complete()
     status = "complete" if complete else ("failed" if err else info.get("status", "not started"))
     return RunRecord(run_dir=d, name=d.name, scene=str(scene), encoding=str(encoding), render=str(render),
                      preset=str(bench.get("preset") or ""), seed=seed, complete=complete, status=status,

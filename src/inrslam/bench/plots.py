@@ -15,8 +15,11 @@ import numpy as np
 from inrslam.bench.leaderboard import (COLUMNS, ENCODING_LABELS, Column, RunRecord, Row, _order, encoding_label,
                                        render_label)
 from inrslam.bench.spec import sanitize
+from inrslam.errors import DataError
+from inrslam.eval.trajectory import associate, ate
 from inrslam.io.atomic import atomic_path
 from inrslam.io.rundir import RunDir
+from inrslam.io.trajectory import read_tum
 
 MARKERS = "osD^v<>pPX*h"
 
@@ -118,26 +121,12 @@ def plot_bars(rows: list[Row], out_dir: str | os.PathLike, columns: tuple[Column
 # ATE over frames
 
 
-def _umeyama_rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid Umeyama/Horn fit dst ≈ R src + t (fallback when inrslam.eval.trajectory is unavailable)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    U, _, Vt = np.linalg.svd((dst - mu_d).T @ (src - mu_s) / len(src))
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1.0
-    R = U @ S @ Vt
-    return R, mu_d - R @ mu_s
-
-
 def ate_over_frames(run_dir: str | os.PathLike, align: str | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """(frame positions in trajectory.txt, per-frame ATE errors in metres) after aligning the whole trajectory.
 
     Uses `trajectory.txt` / `trajectory_gt.txt` (associated by timestamp) and `inrslam.eval.trajectory.ate` with the
     run's `eval.align` (se3 default); None when a file is missing or nothing associates.
     """
-    from inrslam.errors import DataError
-    from inrslam.io.trajectory import read_tum
-
     d = Path(run_dir)
     try:
         ts_e, est = read_tum(RunDir(d).trajectory)
@@ -152,26 +141,11 @@ def ate_over_frames(run_dir: str | os.PathLike, align: str | None = None) -> tup
         except (OSError, yaml.YAMLError):
             cfg = {}
         align = str((cfg.get("eval") or {}).get("align") or "se3")
-    try:
-        from inrslam.eval.trajectory import associate, ate
-    except ImportError:
-        associate = ate = None
-    if associate is not None:
-        ia, ib = associate(ts_e, ts_g, max_diff=1e-3)
-    else:
-        common, ia, ib = np.intersect1d(np.round(ts_e, 6), np.round(ts_g, 6), return_indices=True)
+    ia, ib = associate(ts_e, ts_g, max_diff=1e-3)
     if len(ia) < 3:
         return None
-    if ate is not None:
-        res = ate(est[ia], gt[ib], align=align)
-        used = np.asarray(res.get("used", np.ones(len(ia), bool)), dtype=bool)
-        return ia[used], np.asarray(res["errors"], dtype=np.float64)
-    p, q = est[ia, :3, 3], gt[ib, :3, 3]
-    if align == "none":
-        R, t = np.eye(3), np.zeros(3)
-    else:
-        R, t = _umeyama_rigid(p, q)
-    return ia, np.linalg.norm(p @ R.T + t - q, axis=1)
+    res = ate(est[ia], gt[ib], align=align)
+    return ia[res["used"]], np.asarray(res["errors"], dtype=np.float64)
 
 
 def plot_ate_over_frames(records: list[RunRecord], out_dir: str | os.PathLike) -> list[Path]:

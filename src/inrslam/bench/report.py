@@ -23,8 +23,9 @@ from inrslam.bench.leaderboard import (COLUMNS, RunRecord, aggregate, by_scene, 
                                        to_latex, to_markdown)
 from inrslam.bench.plots import plot_ate_over_frames, plot_bars, plot_tradeoff
 from inrslam.bench.spec import sanitize
-from inrslam.bench.worker import read_json
+from inrslam.bench.sweep import STATUS_FILE
 from inrslam.io.atomic import write_text
+from inrslam.io.rundir import read_json
 
 RUN_FIELDS = ("name", "scene", "encoding", "render", "preset", "seed", "status", "error")
 METRIC_FIELDS = ("ate_rmse_m", "ate_mean_m", "rpe_trans_m", "rpe_rot_deg", "psnr_db", "ssim", "depth_l1_m",
@@ -93,7 +94,7 @@ def _html(runs_dir: Path, out: Path, records, rows, scene_rows: dict, plots: dic
              f"{e(_dt.datetime.now().isoformat(timespec='seconds'))} by <code>inrslam report {e(str(runs_dir))}</code>."
              " PSNR and Depth L1 are measured on the frames processed during the run (as the paper's leaderboards);"
              " Track = ms per frame, Map = ms per mapping call; bold = best per column; – = not measured.</p>"]
-    status = read_json(runs_dir / "sweep_status.json")
+    status = read_json(runs_dir / STATUS_FILE)
     if status:
         counts = ", ".join(f"{k} {v}" for k, v in (status.get("counts") or {}).items())
         parts.append(f"<p>Sweep <code>{e(str(status.get('spec', '')))}</code>: state {e(str(status.get('state')))}"

@@ -22,7 +22,7 @@ import yaml
 
 from inrslam.bench.executors import ExecutorOptions, make_executor
 from inrslam.bench.spec import RunSpec, expand, load_spec, validate_runs
-from inrslam.bench.worker import fn_path, has_checkpoint, is_complete
+from inrslam.bench.worker import fn_path
 from inrslam.errors import ConfigError
 from inrslam.io.atomic import write_json, write_text
 from inrslam.io.rundir import RunDir
@@ -95,7 +95,7 @@ def _check_existing(runs: list[RunSpec], cfgs: dict, out: Path) -> None:
     """Refuse to skip or resume run directories that were made with a different config."""
     for run in runs:
         d = out / run.name
-        if run.name in cfgs and (is_complete(d) or has_checkpoint(d)):
+        if run.name in cfgs and (RunDir(d).is_complete() or RunDir(d).has_checkpoint()):
             diff = config_differences(d, cfgs[run.name])
             if diff:
                 raise ConfigError(f"{d} was made with a different config ({'; '.join(diff[:3])}); "
@@ -150,10 +150,10 @@ def run_sweep(spec, out, jobs: int = 1, executor: str = "local", address: str | 
     todo = []
     for run in runs:
         d = out / run.name
-        if is_complete(d):
+        if RunDir(d).is_complete():
             res.results[run.name] = {"name": run.name, "status": "skipped", "run_dir": str(d), "error": None}
         else:
-            res.results[run.name] = {"name": run.name, "status": "resume" if dry_run and has_checkpoint(d)
+            res.results[run.name] = {"name": run.name, "status": "resume" if dry_run and RunDir(d).has_checkpoint()
                                      else "pending", "run_dir": str(d), "error": None}
             todo.append(run)
     if dry_run:

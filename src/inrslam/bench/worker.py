@@ -9,7 +9,6 @@ one by dotted path (`run_fn="inrslam.bench.testing:fake_run"` or the env var INR
 from __future__ import annotations
 
 import importlib
-import json
 import os
 import sys
 import time
@@ -22,24 +21,6 @@ from inrslam.io.rundir import RunDir
 RUN_FN_ENV = "INRSLAM_BENCH_RUN_FN"
 THREADS_ENV = "INRSLAM_BENCH_THREADS"
 DEFAULT_RUN_FN = "inrslam.bench.worker:slam_run"
-
-
-def read_json(path: Path) -> dict | None:
-    """JSON file -> dict, or None when missing/unreadable."""
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, ValueError):
-        return None
-
-
-def is_complete(run_dir: str | os.PathLike) -> bool:
-    """True when `run_info.json` says status complete and `metrics.json` is readable (`RunDir.is_complete`)."""
-    return RunDir(run_dir).is_complete()
-
-
-def has_checkpoint(run_dir: str | os.PathLike) -> bool:
-    """True when a partial run can be resumed (config.yaml + checkpoints/latest.pt)."""
-    return RunDir(run_dir).has_checkpoint()
 
 
 def resolve_run_fn(run_fn: str | Callable | None = None) -> Callable:
@@ -106,7 +87,7 @@ def slam_run(run: dict, run_dir: Path) -> dict:
     from inrslam.bench.spec import RunSpec, resolve_config
     from inrslam import runner as slam
 
-    if has_checkpoint(run_dir):
+    if RunDir(run_dir).has_checkpoint():
         slam.resume_slam(run_dir, progress=None)  # at the thread count its run_info.json records
         return {"resumed": True}
     cfg = resolve_config(RunSpec.from_dict(run))
@@ -126,7 +107,7 @@ def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | N
     run_dir = Path(out_dir) / run["name"]
     rd = RunDir(run_dir)
     result = {"name": run["name"], "run_dir": str(run_dir), "error": None, "pid": os.getpid(), "seconds": 0.0}
-    if is_complete(run_dir):
+    if rd.is_complete():
         return {**result, "status": "skipped"}
     t0 = time.perf_counter()
     saved = _thread_state()  # in-process runs give the caller its thread counts and environment back
@@ -136,7 +117,7 @@ def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | N
         write_json(rd.bench, run)
         set_threads(threads or os.cpu_count() or 1)
         extra = resolve_run_fn(run_fn)(run, run_dir)
-        if not is_complete(run_dir):
+        if not rd.is_complete():
             info = rd.read_run_info() or {}
             raise RuntimeError(f"the run function returned but {run_dir} is not complete "
                                f"(run_info status {info.get('status')!r}, metrics.json "

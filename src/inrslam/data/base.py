@@ -16,14 +16,6 @@ from inrslam.data.frame import Frame, Intrinsics
 from inrslam.data.images import image_size, read_depth, read_rgb
 from inrslam.errors import ConfigError, DataError
 
-_DIGITS = re.compile(r"(\d+)")
-
-
-def natural_key(path: Path | str) -> list:
-    """Sort key treating digit runs as numbers ('img10' after 'img9')."""
-    name = Path(path).name
-    return [int(t) if t.isdigit() else t.lower() for t in _DIGITS.split(name)]
-
 
 def numbered_files(folder: Path, pattern: str) -> dict[int, Path]:
     """Files in `folder` whose name fully matches regex `pattern` (one group = the frame number) -> {number: path}."""

@@ -1,4 +1,4 @@
-"""Pinhole rays and projection (torch, device-agnostic). OpenCV axes; pixel centres at integer (u, v).
+"""Pinhole rays (torch, device-agnostic). OpenCV axes; pixel centres at integer (u, v).
 
 A camera-frame ray direction is d = ((u - cx) / fx, (v - cy) / fy, 1): *not* normalised, so the ray parameter
 t equals the z-depth and a sensor depth map compares directly with t.
@@ -42,23 +42,3 @@ def world_rays(c2w: Tensor, dirs_cam: Tensor) -> tuple[Tensor, Tensor]:
         return t.expand(dirs_cam.shape[0], 3), dirs_cam @ R.T
     return t, torch.einsum("nij,nj->ni", R, dirs_cam)
 
-
-def project(points_cam: Tensor, intr: Intrinsics) -> tuple[Tensor, Tensor]:
-    """Project camera-frame points. Returns (N, 2) pixel (u, v) and (N,) z-depth."""
-    z = points_cam[..., 2]
-    u = intr.fx * points_cam[..., 0] / z + intr.cx
-    v = intr.fy * points_cam[..., 1] / z + intr.cy
-    return torch.stack([u, v], dim=-1), z
-
-
-def backproject_depth(depth: Tensor, intr: Intrinsics) -> Tensor:
-    """(H, W) depth in metres -> (H, W, 3) camera-frame points (zeros where depth is 0)."""
-    H, W = depth.shape
-    v, u = torch.meshgrid(
-        torch.arange(H, device=depth.device, dtype=depth.dtype),
-        torch.arange(W, device=depth.device, dtype=depth.dtype),
-        indexing="ij",
-    )
-    x = (u - intr.cx) / intr.fx * depth
-    y = (v - intr.cy) / intr.fy * depth
-    return torch.stack([x, y, depth], dim=-1)

@@ -23,11 +23,6 @@ class Intrinsics:
         """(3, 3) float64 calibration matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
-    def scaled(self, width: int, height: int) -> "Intrinsics":
-        """Intrinsics for the same camera resized to `width` x `height`."""
-        sx, sy = width / self.width, height / self.height
-        return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
-
     def cropped(self, edge: int) -> "Intrinsics":
         """Intrinsics after removing `edge` pixels on every side."""
         return Intrinsics(self.fx, self.fy, self.cx - edge, self.cy - edge, self.width - 2 * edge, self.height - 2 * edge)

@@ -100,15 +100,6 @@ def compose_qt(q: Tensor, t: Tensor) -> Tensor:
     return torch.cat([top, bottom], -2)
 
 
-def invert(T: Tensor) -> Tensor:
-    """(..., 4, 4) rigid transform -> inverse, using R^T."""
-    R = T[..., :3, :3]
-    t = T[..., :3, 3:]
-    Rt = R.transpose(-1, -2)
-    top = torch.cat([Rt, -Rt @ t], -1)
-    return torch.cat([top, T[..., 3:, :]], -2)
-
-
 def rotation_angle_deg(R: Tensor) -> Tensor:
     """(..., 3, 3) rotation -> (...,) angle in degrees (clamped acos of (tr - 1) / 2)."""
     tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]

@@ -15,6 +15,14 @@ from typing import Any
 from inrslam.io.atomic import write_json
 
 
+def read_json(path: str | os.PathLike) -> Any:
+    """Parsed JSON of the file at `path`, or None when it is missing or unreadable (runs and sweeps alike)."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+
+
 class RunDir:
     """A run directory at `root`.
 
@@ -101,10 +109,7 @@ class RunDir:
     # -- JSON files --------------------------------------------------------------------------------------------------
     def read_json(self, key: str) -> Any:
         """Parsed JSON of a file, or None when missing or unreadable."""
-        try:
-            return json.loads(self.path(key).read_text())
-        except (OSError, ValueError):
-            return None
+        return read_json(self.path(key))
 
     def read_metrics(self) -> dict | None:
         m = self.read_json("metrics")

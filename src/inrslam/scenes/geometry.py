@@ -131,37 +131,3 @@ class GeometryBuilder:
         return SceneGeometry(mesh=mesh, face_material=np.concatenate(face_mats), materials=list(self.materials),
                              room=self.room.copy())
 
-
-def distance_to_mesh(points: np.ndarray, mesh: trimesh.Trimesh, max_dist: float = np.inf, chunk: int = 128) -> np.ndarray:
-    """Exact point-to-surface distance (brute force with a bounding-box prefilter; no rtree needed).
-
-    Args:
-        points: (N, 3) metres.
-        mesh: triangle mesh.
-        max_dist: distances above this are reported as `max_dist` (prunes far triangles).
-        chunk: points per batch.
-    Returns:
-        (N,) float64 metres, min(distance, max_dist).
-    """
-    points = np.asarray(points, dtype=np.float64)
-    tris = mesh.triangles
-    lo, hi = tris.min(axis=1), tris.max(axis=1)
-    out = np.full(len(points), max_dist, dtype=np.float64)
-    for s in range(0, len(points), chunk):
-        p = points[s:s + chunk]
-        gap = np.maximum(lo[None] - p[:, None], 0) + np.maximum(p[:, None] - hi[None], 0)
-        box_d = np.sqrt((gap * gap).sum(-1))  # (n, F) lower bound of the distance to each triangle
-        if np.isfinite(max_dist):
-            pi, fi = np.nonzero(box_d < max_dist)
-        else:
-            # keep triangles whose box distance is below the smallest upper bound (farthest box corner)
-            far = np.sqrt((np.maximum(np.abs(p[:, None] - lo[None]), np.abs(p[:, None] - hi[None])) ** 2).sum(-1))
-            pi, fi = np.nonzero(box_d <= far.min(axis=1, keepdims=True))
-        if len(pi) == 0:
-            continue
-        closest = trimesh.triangles.closest_point(tris[fi], p[pi])
-        d = np.linalg.norm(closest - p[pi], axis=1)
-        res = out[s:s + chunk]
-        np.minimum.at(res, pi, d)
-        out[s:s + chunk] = res
-    return out

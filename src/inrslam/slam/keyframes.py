@@ -3,6 +3,8 @@ over the union of all stored rays at mapping time and transformed with the keyfr
 
 from __future__ import annotations
 
+from typing import Any, Mapping
+
 import torch
 from torch import Tensor
 
@@ -13,8 +15,15 @@ class KeyframeStore:
     Attributes:
         frame_ids: frame index of each keyframe, in insertion order (slot k = keyframe k).
         dirs: (M', 3) camera-frame ray directions (z = 1); rgb: (M', 3) in [0, 1]; depth: (M',) metres (0 = none);
-        slot: (M',) keyframe slot of each ray. Buffers grow by doubling; the first `n_rays` rows are in use.
+        slot: (M',) int64 keyframe slot of each ray. Buffers grow by doubling; the first `n_rays` rows are in use.
     """
+
+    device: torch.device
+    frame_ids: list[int]
+    dirs: Tensor  # (M', 3)
+    rgb: Tensor  # (M', 3)
+    depth: Tensor  # (M',)
+    slot: Tensor  # (M',) int64
 
     def __init__(self, device: torch.device | str = "cpu"):
         self.device = torch.device(device)
@@ -33,7 +42,8 @@ class KeyframeStore:
         return self._n
 
     def add(self, frame_id: int, dirs: Tensor, rgb: Tensor, depth: Tensor) -> None:
-        """Append the chosen rays of one keyframe."""
+        """Append the chosen rays of one keyframe as the next slot: dirs (n, 3) camera frame (z = 1), rgb (n, 3),
+        depth (n,) metres."""
         k, n = len(self.frame_ids), dirs.shape[0]
         need = self._n + n
         if need > self.depth.shape[0]:
@@ -60,12 +70,14 @@ class KeyframeStore:
         idx = idx.to(self.device)
         return self.slot[idx], self.dirs[idx], self.rgb[idx], self.depth[idx]
 
-    def state_dict(self) -> dict:
+    def state_dict(self) -> dict[str, Any]:
+        """The rays in use (on the CPU) and the keyframe frame ids, for checkpoints."""
         m = self._n
         return {"frame_ids": list(self.frame_ids), "dirs": self.dirs[:m].cpu(), "rgb": self.rgb[:m].cpu(),
                 "depth": self.depth[:m].cpu(), "slot": self.slot[:m].cpu()}
 
-    def load_state_dict(self, state: dict) -> None:
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore a `state_dict` (moved to this store's device)."""
         self.frame_ids = list(state["frame_ids"])
         self.dirs = state["dirs"].to(self.device)
         self.rgb = state["rgb"].to(self.device)

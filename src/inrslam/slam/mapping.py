@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable, Mapping
 
 import torch
 from torch import Tensor
 
 from inrslam.rendering.losses import depth_l1, psnr_from_mse
+from inrslam.slam.config import SlamConfig
+from inrslam.slam.keyframes import KeyframeStore
+from inrslam.slam.model import SceneModel
 from inrslam.slam.poses import PoseSet, ray_poses
+
+Optimizers = Mapping[str, torch.optim.Optimizer]  # the scene optimisers of `SceneModel.make_optimizers`
+CurrentRays = Callable[[int], tuple[Tensor, Tensor, Tensor]]  # n -> dirs_cam (n,3), rgb (n,3), depth (n,) metres
+FrameRays = Callable[[int], tuple[Tensor, Tensor, Tensor, Tensor]]  # n -> c2w (4,4), dirs_cam, rgb, depth
 
 
 @dataclass
@@ -16,19 +24,24 @@ class MapResult:
     kf_c2w: Tensor  # (K, 4, 4) refined keyframe poses
     cur_c2w: Tensor  # (4, 4) refined current pose
     skipped: int = 0  # iterations whose loss was not finite (no step taken)
-    psnr: list = field(default_factory=list)  # per-iteration batch PSNR (dB)
-    depth_l1: list = field(default_factory=list)  # per-iteration batch depth L1 (m)
-    losses: list = field(default_factory=list)
+    psnr: list[float] = field(default_factory=list)  # per-iteration batch PSNR (dB)
+    depth_l1: list[float] = field(default_factory=list)  # per-iteration batch depth L1 (m), iterations with depth
+    losses: list[float] = field(default_factory=list)  # per-iteration total loss
 
 
-def map_frame(model, optimizers: dict, store, kf_c2w: Tensor, cur_c2w: Tensor, cur_rays, cfg, generator) -> MapResult:
+def map_frame(model: SceneModel, optimizers: Optimizers, store: KeyframeStore, kf_c2w: Tensor, cur_c2w: Tensor,
+              cur_rays: CurrentRays, cfg: SlamConfig, generator: torch.Generator) -> MapResult:
     """Jointly optimise the scene (every iteration) and keyframe + current poses (every `ba_pose_every`).
 
     Args:
-        model: `SceneModel`; optimizers: its scene optimisers (from `make_optimizers`).
-        store: `KeyframeStore` with K >= 1 keyframes; kf_c2w: (K, 4, 4) their current poses.
-        cur_c2w: (4, 4) current frame pose; cur_rays: callable n -> (dirs_cam, rgb, depth) uniform over the frame.
-        cfg: `SlamConfig`.
+        model: the scene; optimizers: its scene optimisers (from `make_optimizers`), stepped every iteration.
+        store: the keyframe ray store with K >= 1 keyframes; kf_c2w: (K, 4, 4) their current poses (metres).
+        cur_c2w: (4, 4) current frame pose; cur_rays: n -> (dirs_cam (n,3), rgb (n,3), depth (n,)) uniform over the
+            current frame.
+        cfg: mapping settings (`map_iters`, `map_pixels`, `map_current_min`, `bundle_adjust`, `ba_lr`,
+            `ba_pose_every`, `pose_param`).
+        generator: ray-sampling and jitter generator.
+    Returns: the refined poses (keyframe 0 fixed) and per-iteration PSNR / depth L1 / loss.
     """
     K = len(store)
     do_ba = cfg.bundle_adjust and K >= 2
@@ -64,14 +77,17 @@ def map_frame(model, optimizers: dict, store, kf_c2w: Tensor, cur_c2w: Tensor, c
     return res
 
 
-def initialise(model, optimizers: dict, frame_rays, iters: int, n_pixels: int, generator) -> list[float]:
+def initialise(model: SceneModel, optimizers: Optimizers, frame_rays: FrameRays, iters: int, n_pixels: int,
+               generator: torch.Generator | None) -> list[float]:
     """Fit the scene to the first frame (pose fixed) for `iters` iterations of `n_pixels` fresh random rays.
 
     Args:
-        frame_rays: callable n -> (c2w (4,4), dirs_cam, rgb, depth).
+        model, optimizers: as `map_frame`.
+        frame_rays: n -> (c2w (4,4), dirs_cam (n,3), rgb (n,3), depth (n,) metres).
+        generator: sample-jitter generator (None: the global one).
     Returns: the loss of every iteration.
     """
-    hist = []
+    hist: list[float] = []
     for _ in range(iters):
         c2w, dirs, rgb, depth = frame_rays(n_pixels)
         losses, _ = model.loss(c2w, dirs, rgb, depth, generator)
@@ -80,7 +96,7 @@ def initialise(model, optimizers: dict, frame_rays, iters: int, n_pixels: int, g
     return hist
 
 
-def optimisation_step(loss: torch.Tensor, optimizers: dict) -> bool:
+def optimisation_step(loss: Tensor, optimizers: Optimizers) -> bool:
     """Backward and step every optimiser, unless the loss is not finite (then nothing changes: a NaN never
     reaches the map). Returns whether a step was taken."""
     for opt in optimizers.values():

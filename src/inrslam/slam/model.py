@@ -4,28 +4,53 @@ initialisation, tracking and mapping (docs/spec.md §6: the same total loss ever
 from __future__ import annotations
 
 import dataclasses
+from typing import Protocol
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
-from inrslam.fields import build_field, make_optimizer
+from inrslam.fields import Field, FieldConfig, build_field, make_optimizer
 from inrslam.geometry.camera import pixel_directions, world_rays
 from inrslam.geometry.intrinsics import Intrinsics
-from inrslam.rendering import build_renderer, compute_losses, render_rays, renderer_param_groups, sample_depths
+from inrslam.rendering import (
+    LossConfig,
+    RenderConfig,
+    RenderOutput,
+    SamplingConfig,
+    SdfToWeights,
+    build_renderer,
+    compute_losses,
+    render_rays,
+    renderer_param_groups,
+    sample_depths,
+)
+
+
+class ModelConfig(Protocol):
+    """The sections of a run's configuration the scene model reads. `inrslam.config.RunConfig` (a layer above
+    slam, so not imported here) has them; so does any object with these four attributes."""
+
+    field: FieldConfig
+    render: RenderConfig
+    sampling: SamplingConfig
+    loss: LossConfig
 
 
 class SceneModel(nn.Module):
     """F x G with the configured sampling and losses.
 
     Args:
-        cfg: the run's `RunConfig`.
+        cfg: the run's configuration (`RunConfig`; only `field`, `render`, `sampling` and `loss` are read).
         bounds: (3, 2) scene box in metres.
     """
 
     bounds: Tensor  # (3, 2) metres, a buffer
+    field: Field  # F: (N, 3) metres -> sdf (N,) T-units, rgb_logits (N, 3)
+    renderer: SdfToWeights  # G: per-sample SDF -> compositing weights
+    truncation: float  # T, metres
 
-    def __init__(self, cfg, bounds: np.ndarray):
+    def __init__(self, cfg: ModelConfig, bounds: np.ndarray):
         super().__init__()
         self.cfg = cfg
         self.field = build_field(cfg.field, np.asarray(bounds, dtype=np.float64))
@@ -34,8 +59,9 @@ class SceneModel(nn.Module):
         self.register_buffer("bounds", torch.as_tensor(np.asarray(bounds), dtype=torch.float32))
 
     # -- optimisers -------------------------------------------------------------------------------------------
-    def make_optimizers(self, lr: float) -> dict:
-        """Scene optimiser(s): the field's (sparse-aware) Adam, plus Adam on learnable G parameters if any."""
+    def make_optimizers(self, lr: float) -> dict[str, torch.optim.Optimizer]:
+        """Scene optimiser(s): "field", the field's (sparse-aware) Adam at `lr`, plus "render", Adam on the learnable
+        G parameters if any (at `render.beta_lr`)."""
         opts: dict[str, torch.optim.Optimizer] = {"field": make_optimizer(self.field, lr)}
         groups = renderer_param_groups(self.renderer, self.cfg.render)
         if groups:
@@ -50,15 +76,16 @@ class SceneModel(nn.Module):
         rgb: Tensor,
         depth: Tensor,
         generator: torch.Generator | None,
-    ):
-        """Render rays and compute the loss terms.
+    ) -> tuple[dict[str, Tensor], RenderOutput]:
+        """Render rays and compute the loss terms (differentiable in the field, G's parameters and `c2w`).
 
         Args:
-            c2w: (4, 4) or (R, 4, 4) camera-to-world per ray.
+            c2w: (4, 4) shared or (R, 4, 4) per-ray camera-to-world, metres.
             dirs_cam: (R, 3) camera-frame directions (z = 1).
-            rgb: (R, 3) observed colours; depth: (R,) observed depth in metres (0 = none).
+            rgb: (R, 3) observed colours in [0, 1]; depth: (R,) observed z-depth in metres (0 = none).
+            generator: sample-jitter generator (None: the global one).
         Returns:
-            (dict of loss terms with 'total', RenderOutput)
+            (loss terms: 0-d tensors, 'total' the weighted sum; the RenderOutput of the R rays)
         """
         origins, dirs = world_rays(c2w, dirs_cam)
         with torch.no_grad():
@@ -76,7 +103,10 @@ class SceneModel(nn.Module):
         """Render a full frame *without* the measured depth: coarse uniform samples to the box exit, the first
         + to - SDF crossing then serves as the depth guiding the standard free-space + surface sampling.
 
-        Returns: rgb (H, W, 3), depth (H, W) in metres.
+        Args:
+            c2w: (4, 4) camera-to-world, metres; intr: the camera (H = intr.height, W = intr.width).
+            n_coarse: uniform samples per ray of the surface search; chunk: rays per field batch.
+        Returns: rgb (H, W, 3) in [0, 1], depth (H, W) in metres.
         """
         dev = self.bounds.device
         H, W = intr.height, intr.width
@@ -113,5 +143,5 @@ class SceneModel(nn.Module):
         return torch.where(has, zc, zero)
 
 
-def _uniform_only(sampling_cfg, n: int):
+def _uniform_only(sampling_cfg: SamplingConfig, n: int) -> SamplingConfig:
     return dataclasses.replace(sampling_cfg, n_uniform=n, jitter=False)

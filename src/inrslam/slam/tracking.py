@@ -5,10 +5,13 @@ from __future__ import annotations
 import math
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Iterator
 
 import torch
 from torch import Tensor
 
+from inrslam.slam.config import SlamConfig
+from inrslam.slam.model import SceneModel
 from inrslam.slam.poses import PoseSet
 
 
@@ -21,7 +24,7 @@ class TrackResult:
 
 
 @contextmanager
-def frozen(module: torch.nn.Module):
+def frozen(module: torch.nn.Module) -> Iterator[torch.nn.Module]:
     """Temporarily stop gradients into `module`'s parameters (tracking only needs gradients to the points)."""
     flags = [(p, p.requires_grad) for p in module.parameters()]
     for p, _ in flags:
@@ -33,23 +36,27 @@ def frozen(module: torch.nn.Module):
             p.requires_grad_(flag)
 
 
-def track_frame(model, c2w_pred: Tensor, dirs_cam: Tensor, rgb: Tensor, depth: Tensor, cfg, generator,
-                max_jump: float) -> TrackResult:
+def track_frame(model: SceneModel, c2w_pred: Tensor, dirs_cam: Tensor, rgb: Tensor, depth: Tensor, cfg: SlamConfig,
+                generator: torch.Generator | None, max_jump: float) -> TrackResult:
     """Adam on the pose only (map frozen); returns the lowest-loss pose among all evaluated poses, *including* the
     pose after the final update (one extra forward pass) unless `cfg.eval_final_pose` is off (the original code).
 
     Args:
-        model: `SceneModel` (its parameters are not stepped here).
-        c2w_pred: (4, 4) predicted pose.
-        dirs_cam, rgb, depth: the frame's sampled rays (drawn once, reused every iteration).
-        cfg: `SlamConfig`. generator: sample-jitter generator.
+        model: the scene (its parameters are not stepped here; gradients flow only to the pose).
+        c2w_pred: (4, 4) predicted camera-to-world, metres.
+        dirs_cam: (R, 3) camera-frame directions (z = 1), rgb: (R, 3) in [0, 1], depth: (R,) metres (0 = none): the
+            frame's sampled rays (drawn once, reused every iteration).
+        cfg: tracking settings (`track_iters`, `track_lr`, `pose_param`, `keep_best_pose`, `eval_final_pose`).
+        generator: sample-jitter generator (None: the global one).
         max_jump: metres; a best pose farther than this from the prediction is rejected.
+    Returns: the chosen (4, 4) pose, its loss, the iterations run and the fallback taken, if any.
     """
     with frozen(model):
         return _track(model, c2w_pred, dirs_cam, rgb, depth, cfg, generator, max_jump)
 
 
-def _track(model, c2w_pred, dirs_cam, rgb, depth, cfg, generator, max_jump) -> TrackResult:
+def _track(model: SceneModel, c2w_pred: Tensor, dirs_cam: Tensor, rgb: Tensor, depth: Tensor, cfg: SlamConfig,
+           generator: torch.Generator | None, max_jump: float) -> TrackResult:
     pose = PoseSet(c2w_pred[None], cfg.pose_param)
     opt = torch.optim.Adam(pose.parameters(), lr=cfg.track_lr)
     best_loss, best = math.inf, c2w_pred.detach().clone()

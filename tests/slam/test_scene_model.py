@@ -1,0 +1,76 @@
+"""Every registered F x every registered G through the scene model's shared loss and its backward.
+
+16 rays from a camera inside a 2 m box (two without depth), a tiny field (30 / 10 cm cells, 2^8 hash rows, 32-wide
+MLP) and 8 + 4 samples per ray, so all F x G pairs together stay within a few seconds. A field or renderer added to
+its registry is picked up here automatically.
+"""
+
+from __future__ import annotations
+
+import typing
+
+import numpy as np
+import pytest
+import torch
+
+from inrslam.config import RunConfig, load_config
+from inrslam.fields import ENCODINGS
+from inrslam.rendering import RENDERERS
+from inrslam.slam.model import ModelConfig, SceneModel
+
+BOUNDS = np.array([[-1.0, 1.0], [-0.8, 0.8], [-0.2, 1.4]])  # metres
+RAYS = 16
+TINY = [
+    "field.block_coarse=0.3", "field.block_fine=0.1", "field.app_block_coarse=0.3", "field.app_block_fine=0.1",
+    "field.plane_block_coarse=0.3", "field.log2_hashmap_size=8", "field.mlp_width=32",
+    "sampling.n_free=8", "sampling.n_surface=4",
+    "render.learn_beta=true",  # so every renderer with a parameter learns it (neus, volsdf learn by default)
+]
+
+
+def _rays(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """c2w (4, 4), camera directions (R, 3) with z = 1, colours (R, 3), depths (R,) in metres (two rays 0 = none)."""
+    g = torch.Generator().manual_seed(seed)
+    c2w = torch.eye(4)
+    c2w[:3, 3] = torch.tensor([0.1, -0.05, 0.0])
+    dirs = torch.cat([(torch.rand(RAYS, 2, generator=g) - 0.5) * 0.6, torch.ones(RAYS, 1)], dim=1)
+    rgb = torch.rand(RAYS, 3, generator=g)
+    depth = 0.6 + 0.5 * torch.rand(RAYS, generator=g)
+    depth[:2] = 0.0
+    return c2w, dirs, rgb, depth
+
+
+@pytest.mark.parametrize("render", RENDERERS.names())
+@pytest.mark.parametrize("encoding", ENCODINGS.names())
+def test_every_field_and_renderer_train_through_the_scene_model(encoding, render):
+    cfg = load_config(preset="quick", overrides=[f"field.encoding={encoding}", f"render.name={render}", *TINY])
+    torch.manual_seed(0)
+    model = SceneModel(cfg, BOUNDS)
+    c2w, dirs, rgb, depth = _rays()
+    c2w.requires_grad_()
+    losses, out = model.loss(c2w, dirs, rgb, depth, torch.Generator().manual_seed(1))
+    assert out.rgb.shape == (RAYS, 3) and out.depth.shape == (RAYS,)
+    assert losses["total"].dim() == 0
+    for name, value in losses.items():
+        assert torch.isfinite(value).all(), f"{encoding} x {render}: loss term {name} = {value}"
+    losses["total"].backward()
+
+    def grad(p: torch.Tensor) -> torch.Tensor:
+        return p.grad.coalesce().values() if p.grad.is_sparse else p.grad
+
+    for name, p in model.field.named_parameters():
+        assert p.grad is not None, f"{encoding} x {render}: no gradient for field.{name}"
+        assert torch.isfinite(grad(p)).all(), f"{encoding} x {render}: non-finite gradient of field.{name}"
+        assert grad(p).abs().sum() > 0, f"{encoding} x {render}: zero gradient for field.{name}"
+    learnable = [(n, p) for n, p in model.renderer.named_parameters() if p.requires_grad]
+    for name, p in learnable:
+        assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs() > 0, f"{render}.{name}"
+    # tracking differentiates the same loss with respect to the camera pose
+    assert torch.isfinite(c2w.grad).all() and c2w.grad[:3].abs().sum() > 0
+    assert set(model.make_optimizers(1e-2)) == ({"field", "render"} if learnable else {"field"})
+
+
+def test_run_config_has_every_section_the_scene_model_reads():
+    """`ModelConfig` (slam may not import the config layer) names RunConfig's sections with their types."""
+    wanted, run = typing.get_type_hints(ModelConfig), typing.get_type_hints(RunConfig)
+    assert wanted and all(run.get(name) is typ for name, typ in wanted.items()), (wanted, run)
