@@ -120,3 +120,14 @@ def test_resume_rejects_another_runs_checkpoint_and_removes_stale_temporaries(tm
     os.replace(RunDir(b).checkpoint, RunDir(a).checkpoint)
     with pytest.raises(RunError, match="belongs to another run .*encoding 'hash' in the checkpoint, 'dense'"):
         resume_slam(a)
+
+
+def test_the_loops_config_protocol_names_runconfigs_sections():
+    import typing
+
+    from inrslam.config.schema import RunConfig
+    from inrslam.slam.system import SlamRunConfig
+
+    wanted, run = typing.get_type_hints(SlamRunConfig), typing.get_type_hints(RunConfig)
+    assert set(wanted) >= {"field", "render", "slam", "mesh", "seed", "device"}
+    assert all(run[k] == tp for k, tp in wanted.items())

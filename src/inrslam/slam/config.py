@@ -4,10 +4,6 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import Protocol
-
-from inrslam.fields.config import FieldConfig
-from inrslam.rendering.config import LossConfig, RenderConfig, SamplingConfig
 
 
 class PoseParam(str, enum.Enum):
@@ -122,16 +118,3 @@ class OutputConfig:
 
     tensorboard: bool = True  # TensorBoard scalars when tensorboard is installed
 
-
-class SlamRunConfig(Protocol):
-    """The sections of a run's config that the SLAM loop reads (`inrslam.config.RunConfig` satisfies it; the root
-    config sits above this package, so the loop names it by this protocol)."""
-
-    field: FieldConfig
-    render: RenderConfig
-    sampling: SamplingConfig
-    loss: LossConfig
-    slam: SlamConfig
-    mesh: MeshConfig
-    seed: int
-    device: str

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import numpy as np
 import torch
@@ -15,12 +15,12 @@ import trimesh
 
 from inrslam.data.frame import Frame, RGBDDataset
 from inrslam.errors import ConfigError
-from inrslam.slam.config import GicpConfig, GicpTarget, PoseInit, SlamRunConfig
+from inrslam.slam.config import GicpConfig, GicpTarget, MeshConfig, PoseInit, SlamConfig
 from inrslam.slam.frame_tensors import FrameTensors
 from inrslam.slam.keyframes import KeyframeStore
 from inrslam.slam.mapping import initialise, map_frame
 from inrslam.slam.mesh_extraction import extract_mesh
-from inrslam.slam.model import SceneModel
+from inrslam.slam.model import ModelConfig, SceneModel
 from inrslam.slam.poses import constant_velocity, relative_trajectory
 from inrslam.slam.registration import PreparedCloud, depth_points, moved_beyond, prepare_depth, register
 from inrslam.slam.sdf_tracking import align_to_sdf
@@ -29,6 +29,15 @@ from inrslam.slam.tracking import track_frame
 
 # (frame index, n_frames, info) -> None, called after every frame; info: see `SlamSystem.progress_info`
 Progress = Callable[[int, int, dict], None]
+
+
+class SlamRunConfig(ModelConfig, Protocol):
+    """The sections of a run's config the loop reads (`inrslam.config.RunConfig` has them; it sits above slam)."""
+
+    slam: SlamConfig
+    mesh: MeshConfig
+    seed: int
+    device: str
 
 
 def resolve_device(name: str) -> torch.device:
