@@ -19,7 +19,9 @@ import torch
 from torch import nn
 
 from inrslam.rendering import (
+    DensityConfig,
     LossConfig,
+    NeusConfig,
     RenderConfig,
     SamplingConfig,
     build_renderer,
@@ -158,8 +160,8 @@ def fit(frame, rcfg: RenderConfig, steps: int = STEPS, rays: int = RAYS, seed: i
 # fields' fused kernels costs ~8x here).
 SETTINGS = {
     "direct": RenderConfig(name="direct"),
-    "density": RenderConfig(name="density", beta=30.0),
-    "neus": RenderConfig(name="neus", neus_normals="autograd_detached"),
+    "density": RenderConfig(name="density", density=DensityConfig(beta=30.0)),
+    "neus": RenderConfig(name="neus", neus=NeusConfig(normals="autograd_detached")),
     "volsdf": RenderConfig(name="volsdf"),
 }
 
