@@ -7,6 +7,7 @@ import pytest
 from data_layouts import H, W, green, make_7scenes, make_neuralrgbd, make_replica, make_scannet, make_tum
 
 from inrslam.data import DATASETS, DataConfig, Frame, RGBDDataset, open_folder
+from inrslam.data.config import NeuralRgbdConfig, SevenScenesConfig, TumConfig
 from inrslam.data.neuralrgbd import FOCAL
 from inrslam.errors import DataError
 
@@ -80,7 +81,8 @@ def test_neuralrgbd_opengl_converted_and_nan_invalid(tmp_path, monkeypatch):
     assert not ds[1].pose_valid and np.all(np.isnan(ds[1].c2w))
     np.testing.assert_array_equal(ds.bounds, [[-2.4, 2.0], [-0.6, 2.9], [-1.8, 3.1]])
     # the unfiltered depth folder is selectable and differs by one raw unit (1 mm)
-    ds_raw = open_folder(lay.root, DataConfig(intrinsics=[20.0, 20.0, 16.0, 12.0], neuralrgbd_depth_dir="depth"))
+    raw_cfg = DataConfig(intrinsics=[20.0, 20.0, 16.0, 12.0], neuralrgbd=NeuralRgbdConfig(depth_dir="depth"))
+    ds_raw = open_folder(lay.root, raw_cfg)
     assert ds_raw[0].depth[5, 5] - ds[0].depth[5, 5] == pytest.approx(0.001, abs=1e-6)
 
 
@@ -125,10 +127,10 @@ def test_tum_association(tmp_path):
     # the ground truth is 3 ms off the colour stamps: matched; the last frame has none within 0.02 s
     assert list(ds.pose_valid) == [True, True, True, False]
     # a tighter pose tolerance invalidates them
-    assert not open_folder(lay.root, DataConfig(intrinsics=K, tum_max_dt_pose=0.001)).pose_valid.any()
+    assert not open_folder(lay.root, DataConfig(intrinsics=K, tum=TumConfig(max_dt_pose=0.001))).pose_valid.any()
     # depth is 5 ms after colour: a 1 ms tolerance pairs nothing -> error naming the lists
     with pytest.raises(DataError, match="rgb.txt"):
-        open_folder(lay.root, DataConfig(intrinsics=K, tum_max_dt_depth=0.001))
+        open_folder(lay.root, DataConfig(intrinsics=K, tum=TumConfig(max_dt_depth=0.001)))
 
 
 def test_tum_default_intrinsics_by_sequence(tmp_path, monkeypatch):
@@ -154,7 +156,7 @@ def test_7scenes_several_sequences_need_choice(tmp_path):
     make_7scenes(tmp_path, n=2, sub="seq-02")
     with pytest.raises(DataError, match="seq-01, seq-02"):
         open_folder(lay.root)
-    assert len(open_folder(lay.root, DataConfig(sequence="seq-02"))) == 2
+    assert len(open_folder(lay.root, DataConfig(sevenscenes=SevenScenesConfig(sequence="seq-02")))) == 2
 
 
 def test_frames_are_read_lazily(tmp_path):

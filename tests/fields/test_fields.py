@@ -17,11 +17,12 @@ from inrslam.fields import (
     model_size_mb,
     param_count,
 )
+from inrslam.fields.config import MlpConfig
 from inrslam.fields.resolution import grid_entries, plane_sizes
 
 BOX = np.array([[-0.6, 0.6], [-0.5, 0.5], [0.0, 0.8]])  # 1.2 x 1.0 x 0.8 m
 SMALL = dict(block_coarse=0.3, block_fine=0.1, app_block_coarse=0.3, app_block_fine=0.1, plane_block_coarse=0.3,
-             mlp_width=32, log2_hashmap_size=8)
+             mlp=MlpConfig(width=32), log2_hashmap_size=8)
 
 
 # every registered F: an encoding added to the registry is picked up by the generic tests below

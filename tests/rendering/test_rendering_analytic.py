@@ -24,7 +24,17 @@ from __future__ import annotations
 import pytest
 import torch
 
-from inrslam.rendering import RENDERERS, RenderConfig, SamplingConfig, build_renderer, render_rays, sample_depths
+from inrslam.rendering import (
+    RENDERERS,
+    DensityConfig,
+    NerfConfig,
+    RenderConfig,
+    SamplingConfig,
+    VolSdfConfig,
+    build_renderer,
+    render_rays,
+    sample_depths,
+)
 
 from rendering_helpers import COLOR, COLOR_LOGITS, T, Out, PlaneField, SphereField, camera_rays, rotation_x
 
@@ -78,10 +88,12 @@ SCENES = _scenes()
 # name -> (RenderConfig, SamplingConfig or None for dense uniform no-depth sampling, field wrapper, normalised)
 CASES = {
     "direct": (RenderConfig(name="direct"), SamplingConfig(n_surface=24), None, True),
-    "density": (RenderConfig(name="density", beta=300.0), SamplingConfig(n_surface=48, band=0.5), None, False),
+    "density": (RenderConfig(name="density", density=DensityConfig(beta=300.0)), SamplingConfig(n_surface=48, band=0.5),
+                None, False),
     "neus": (RenderConfig(name="neus"), SamplingConfig(), None, False),  # default inv_s = e^5 = 148/m
-    "volsdf": (RenderConfig(name="volsdf", volsdf_beta_init=0.003), SamplingConfig(n_surface=48), None, False),
-    "nerf": (RenderConfig(name="nerf", nerf_activation="relu"), None, StepDensity, False),
+    "volsdf": (RenderConfig(name="volsdf", volsdf=VolSdfConfig(beta_init=0.003)), SamplingConfig(n_surface=48), None,
+               False),
+    "nerf": (RenderConfig(name="nerf", nerf=NerfConfig(activation="relu")), None, StepDensity, False),
 }
 DENSE = SamplingConfig(n_uniform=2048)
 

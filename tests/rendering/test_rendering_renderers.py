@@ -11,11 +11,14 @@ from torch import nn
 from inrslam.errors import ConfigError
 from inrslam.rendering import (
     RENDERERS,
+    DensityConfig,
     LossConfig,
+    NeusConfig,
     NormalsMethod,
     RenderConfig,
     SamplingConfig,
     SdfToWeights,
+    VolSdfConfig,
     build_renderer,
     composite,
     compute_losses,
@@ -61,20 +64,20 @@ def test_registry_and_build():
         assert r.needs_normals == (name == "neus")
     with pytest.raises(ConfigError, match="did you mean 'density'"):
         build_renderer(RenderConfig(name="densty"))
-    with pytest.raises(ConfigError, match="volsdf_beta_init"):
-        build_renderer(RenderConfig(name="volsdf", volsdf_beta_init=1e-5))
+    with pytest.raises(ConfigError, match="volsdf.beta_init"):
+        build_renderer(RenderConfig(name="volsdf", volsdf=VolSdfConfig(beta_init=1e-5)))
 
 
 def test_learnable_parameters():
     assert renderer_param_groups(build_renderer(RenderConfig(name="density")), RenderConfig()) == []
-    cfg = RenderConfig(name="density", learn_beta=True, beta_lr=0.1)
+    cfg = RenderConfig(name="density", density=DensityConfig(learn_beta=True), beta_lr=0.1)
     r = build_renderer(cfg)
     (group,) = renderer_param_groups(r, cfg)
     assert group["lr"] == 0.1 and group["params"][0] is r.beta and r.beta.item() == 10.0
     r = build_renderer(RenderConfig(name="neus"))
     assert r.log_inv_s.requires_grad and r.inv_s.item() == pytest.approx(math.exp(5.0), rel=1e-6)
-    assert not build_renderer(RenderConfig(name="neus", neus_learn_s=False)).log_inv_s.requires_grad
-    r = build_renderer(RenderConfig(name="volsdf", volsdf_beta_init=0.02))
+    assert not build_renderer(RenderConfig(name="neus", neus=NeusConfig(learn_s=False))).log_inv_s.requires_grad
+    r = build_renderer(RenderConfig(name="volsdf", volsdf=VolSdfConfig(beta_init=0.02)))
     assert r.log_beta.requires_grad and r.beta.item() == pytest.approx(0.02, rel=1e-6)
 
 
@@ -185,7 +188,7 @@ def test_field_queried_once_without_normals():
 @pytest.mark.parametrize("method", list(NormalsMethod))
 def test_neus_normals_match_the_analytic_gradient(method):
     f, o, d, z = _plane_rays()
-    r = build_renderer(RenderConfig(name="neus", neus_normals=method)).double()
+    r = build_renderer(RenderConfig(name="neus", neus=NeusConfig(normals=method))).double()
     out = render_rays(f, r, o, d, z, T)
     expected = (-f.n / T).expand_as(out.normals)  # s = (h - n.x) / T
     torch.testing.assert_close(out.normals, expected, atol=1e-6, rtol=1e-6)
@@ -195,7 +198,7 @@ def test_neus_normals_match_the_analytic_gradient(method):
 def test_render_rays_inside_no_grad(method):
     f, o, d, z = _plane_rays()
     field = TinyMLPField()
-    r = build_renderer(RenderConfig(name="neus", neus_normals=method)).double()
+    r = build_renderer(RenderConfig(name="neus", neus=NeusConfig(normals=method))).double()
     with torch.no_grad():
         out = render_rays(field, r, o, d, z, T)
     assert not out.depth.requires_grad and not out.weights.requires_grad and not out.normals.requires_grad
@@ -214,7 +217,7 @@ def test_neus_trains_the_field_through_the_normals():
             out = f(x)
             return Out(a * out.sdf, out.rgb_logits)
 
-        r = build_renderer(RenderConfig(name="neus", neus_normals=method)).double()
+        r = build_renderer(RenderConfig(name="neus", neus=NeusConfig(normals=method))).double()
         out = render_rays(field, r, o, d, z, T)
         out.depth.sum().backward()
         grads[method] = a.grad.item()
@@ -238,7 +241,7 @@ def test_neus_gradient_of_sdf_only_and_pose_gradient():
 
 
 def test_neus_annealing_progress():
-    r = build_renderer(RenderConfig(name="neus", neus_anneal_end=0.5))
+    r = build_renderer(RenderConfig(name="neus", neus=NeusConfig(anneal_end=0.5)))
     r.set_progress(0.1)
     assert r.anneal_ratio() == pytest.approx(0.2)
     r.set_progress(2.0)
@@ -253,7 +256,7 @@ def test_neus_annealing_progress():
 @pytest.mark.parametrize("faithful", [False, True])
 def test_every_renderer_renders_and_backpropagates(name, faithful):
     field = TinyMLPField()
-    r = build_renderer(RenderConfig(name=name, faithful=faithful, learn_beta=True)).double()
+    r = build_renderer(RenderConfig(name=name, faithful=faithful, density=DensityConfig(learn_beta=True))).double()
     o = torch.zeros(16, 3, dtype=torch.float64)
     d = torch.cat([torch.randn(16, 2, dtype=torch.float64) * 0.3, torch.ones(16, 1, dtype=torch.float64)], -1)
     depth = torch.rand(16, dtype=torch.float64) + 1.5

@@ -17,7 +17,9 @@ import torch
 from inrslam.fields import Field, FieldConfig, build_field
 from inrslam.geometry.camera import pixel_directions
 from inrslam.rendering import (
+    DensityConfig,
     LossConfig,
+    NeusConfig,
     RenderConfig,
     SamplingConfig,
     build_renderer,
@@ -93,8 +95,8 @@ def fit(frame, rcfg: RenderConfig, steps: int = STEPS, rays: int = RAYS, seed: i
 # fields' fused kernels costs ~8x here).
 SETTINGS = {
     "direct": RenderConfig(name="direct"),
-    "density": RenderConfig(name="density", beta=30.0),
-    "neus": RenderConfig(name="neus", neus_normals="autograd_detached"),
+    "density": RenderConfig(name="density", density=DensityConfig(beta=30.0)),
+    "neus": RenderConfig(name="neus", neus=NeusConfig(normals="autograd_detached")),
     "volsdf": RenderConfig(name="volsdf"),
 }
 

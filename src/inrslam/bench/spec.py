@@ -271,12 +271,39 @@ def expand(spec: SweepSpec | dict | str | os.PathLike) -> list[RunSpec]:
 
 
 def resolve_config(run: RunSpec):
-    """The `RunConfig` of one run (preset + overrides), with registry names checked."""
+    """The `RunConfig` of one run (preset + overrides), with registry names checked. An override in the section of a
+    variant this run does not select is unused here (`check_sweep_variants` checks it applies to some run)."""
     from inrslam.config.loader import load_config
 
-    cfg = load_config(None, preset=run.preset, overrides=run.overrides)
+    cfg = load_config(None, preset=run.preset, overrides=run.overrides, check_variants=False)
     check_registry_names(cfg)
     return cfg
+
+
+def check_sweep_variants(spec: SweepSpec, runs: list[RunSpec], cfgs: dict[str, Any]) -> None:
+    """ConfigError when an override of the sweep (or of one scene) sets a key in the section of a variant that no run
+    it reaches selects, e.g. `render.neus.fd_eps` in a sweep over renders density and direct.
+
+    Args:
+        spec: the sweep spec (its `overrides` and each scene's).
+        runs: `expand(spec)`.
+        cfgs: {run name: resolved RunConfig} (`validate_runs`).
+    """
+    from inrslam.config.aliases import apply_aliases
+    from inrslam.config.variants import leaf_keys, variant_error, variant_of
+
+    groups = [(f"{spec.source}: overrides", spec.overrides, runs)]
+    groups += [(f"{spec.source}: scene {sc.name!r} overrides", sc.overrides, [r for r in runs if r.scene == sc.name])
+               for sc in spec.scenes]
+    for where, overrides, reached in groups:
+        renamed: dict[str, str] = {}
+        for key in sorted(leaf_keys(apply_aliases(overrides, where, renamed))):
+            variant = variant_of(key)
+            states = [variant.applies(cfgs[r.name]) for r in reached if r.name in cfgs] if variant else []
+            if variant and states and all(active is False for active, _ in states):
+                selected = "; ".join(sorted({what for _, what in states}))
+                raise variant_error(key, where, variant, f"no run of the sweep selects it ({selected})",
+                                    renamed.get(key))
 
 
 def check_registry_names(cfg) -> None:
@@ -291,10 +318,12 @@ def check_registry_names(cfg) -> None:
         raise ConfigError(f"config key 'render.name': {RENDERERS.unknown_message(cfg.render.name)}")
 
 
-def validate_runs(runs: list[RunSpec], source: str = "sweep spec", check_paths: bool = True) -> dict[str, Any]:
+def validate_runs(runs: list[RunSpec], source: str = "sweep spec", check_paths: bool = True,
+                  spec: SweepSpec | None = None) -> dict[str, Any]:
     """Resolve every run's config up-front (a typo fails before anything runs). Returns {run name: RunConfig}.
 
-    Built-in scene names must be known; with `check_paths`, dataset folders must exist too.
+    Built-in scene names must be known; with `check_paths`, dataset folders must exist too; with `spec` (the spec
+    `runs` were expanded from), its overrides must apply to some run (`check_sweep_variants`).
     """
     cfgs = {}
     for run in runs:
@@ -302,6 +331,8 @@ def validate_runs(runs: list[RunSpec], source: str = "sweep spec", check_paths: 
             cfgs[run.name] = resolve_config(run)
         except ConfigError as e:
             raise ConfigError(f"{source}: run {run.name}: {e}") from None
+    if spec is not None:
+        check_sweep_variants(spec, runs, cfgs)
     for scene_path in sorted({r.scene_path for r in runs}):
         if scene_path.startswith("builtin:"):
             _check_builtin(scene_path, source)

@@ -80,13 +80,20 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 
 
 def config_differences(run_dir: Path, cfg) -> list[str]:
-    """Keys whose value in `run_dir/config.yaml` differs from the resolved `cfg` (keys present in both)."""
+    """Keys whose value in `run_dir/config.yaml` differs from the resolved `cfg` (keys present in both, the file's
+    old key names read as the new ones, `inrslam.config.aliases`)."""
+    from inrslam.config.aliases import apply_aliases
     from inrslam.config.loader import config_to_dict
 
+    path = RunDir(run_dir).config
     try:
-        old = _flatten(yaml.safe_load(RunDir(run_dir).config.read_text()) or {})
+        data = yaml.safe_load(path.read_text()) or {}
     except (OSError, yaml.YAMLError):
         return []
+    try:
+        old = _flatten(apply_aliases(data, str(path)) if isinstance(data, dict) else {})
+    except ConfigError as e:
+        return [str(e)]
     new = _flatten(config_to_dict(cfg))
     return [f"{k}: {old[k]!r} -> {new[k]!r}" for k in sorted(set(old) & set(new)) if old[k] != new[k]]
 
@@ -144,7 +151,7 @@ def run_sweep(spec, out, jobs: int = 1, executor: str = "local", address: str | 
     sp = load_spec(spec)
     runs = expand(sp)
     out = Path(out)
-    cfgs = validate_runs(runs, sp.source, check_paths=not dry_run) if validate else {}
+    cfgs = validate_runs(runs, sp.source, check_paths=not dry_run, spec=sp) if validate else {}
     _check_existing(runs, cfgs, out)
     res = SweepResult(out=out, runs=runs, dry_run=dry_run)
     todo = []

@@ -1,7 +1,9 @@
 """Load a `RunConfig` from presets, YAML files and `key.sub=value` overrides, with strict validation.
 
 Precedence (later wins): dataclass defaults < preset < `--config` file (and its `inherit_from` chain) < overrides.
-Unknown keys and wrong types raise `ConfigError` naming the key, where it came from and the closest valid key.
+Old key names are accepted in every layer (`inrslam.config.aliases`). Unknown keys and wrong types raise
+`ConfigError` naming the key, where it came from and the closest valid key; so does a key the user set in the
+section of a variant that is not selected (`render.neus.*` with render.name=density, `inrslam.config.variants`).
 """
 
 from __future__ import annotations
@@ -101,6 +103,11 @@ def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
     return tp, False
 
 
+def _section_type(tp: Any) -> type | None:
+    tp, _ = _unwrap_optional(tp)
+    return tp if isinstance(tp, type) and dataclasses.is_dataclass(tp) else None
+
+
 def _validate_keys(cls: type, data: dict, source: str, prefix: str = "") -> None:
     """Raise on keys of `data` that are not fields of dataclass `cls` (recursively)."""
     hints = _hints(cls)
@@ -109,7 +116,9 @@ def _validate_keys(cls: type, data: dict, source: str, prefix: str = "") -> None
         full = f"{prefix}{key}"
         if key not in names:
             valid = [f"{prefix}{n}" for n in names]
-            close = difflib.get_close_matches(full, valid, n=1, cutoff=0.5)
+            nested = [f"{prefix}{n}.{key}" for n in names if (sub := _section_type(hints[n])) is not None
+                      and key in {f.name for f in dataclasses.fields(sub)}]  # `render.fd_eps` -> render.neus.fd_eps
+            close = nested[:1] or difflib.get_close_matches(full, valid, n=1, cutoff=0.5)
             hint = f"; did you mean {close[0]!r}?" if close else f" (valid keys here: {', '.join(names)})"
             raise ConfigError(f"unknown config key {full!r} in {source}{hint}")
         tp, _ = _unwrap_optional(hints[key])
@@ -206,10 +215,15 @@ def build_config(cls: type, layers: list[tuple[dict, str]]):
     return _convert(cls, merged, "", sources)
 
 
+def _is_preset(source: str) -> bool:
+    return Path(source).parent == PRESET_DIR
+
+
 def load_config(
     config: str | Path | None = None,
     preset: str | None = "paper",
     overrides: list[str] | dict | None = None,
+    check_variants: bool = True,
 ):
     """Resolve a `RunConfig`.
 
@@ -217,23 +231,44 @@ def load_config(
         config: YAML file (may use `inherit_from: other.yaml` or `inherit_from: preset:NAME`).
         preset: preset applied first (None = dataclass defaults only).
         overrides: `['a.b=1', ...]` or a nested dict, applied last.
+        check_variants: a key that `config` (its chain, presets excepted) or `overrides` set in the section of a
+            variant the result does not select (`render.density.beta` with render.name=neus) is a ConfigError
+            unless it keeps the value it would have anyway. False: such keys are unused (a run's own config.yaml
+            on resume; sweeps, which check that each key applies to some run of the sweep).
     """
-    from inrslam.config.schema import RunConfig
+    from inrslam.config.aliases import apply_aliases
+    from inrslam.config.schema import FAITHFUL_LAYER, RunConfig
+    from inrslam.config.variants import check_variant_keys, leaf_keys
 
-    layers: list[tuple[dict, str]] = []
+    layers: list[tuple[dict, str, bool]] = []  # (data, source, written by the user)
     if preset:
-        layers += _load_chain(_preset_path(preset))
+        layers += [(data, source, False) for data, source in _load_chain(_preset_path(preset))]
     n_preset = len(layers)
     if config:
-        layers += _load_chain(Path(config))
+        layers += [(data, source, not _is_preset(source)) for data, source in _load_chain(Path(config))]
     if overrides:
         ov = parse_overrides(overrides) if isinstance(overrides, list) else overrides
-        layers.append((ov, "command-line overrides"))
-    if any(layer.get("faithful") is True for layer, _ in layers):
-        from inrslam.config.schema import FAITHFUL_LAYER
-
-        layers.insert(n_preset, (FAITHFUL_LAYER, "faithful=true"))
-    return build_config(RunConfig, layers)
+        layers.append((ov, "command-line overrides", True))
+    if any(layer.get("faithful") is True for layer, _, _ in layers):
+        layers.insert(n_preset, (FAITHFUL_LAYER, "faithful=true", False))
+    normalised: list[tuple[dict, str]] = []
+    user_keys: dict[str, str] = {}  # dotted key -> the last user layer setting it
+    renamed: dict[str, str] = {}  # dotted key -> its old spelling, when that layer used it
+    for data, source, by_user in layers:
+        layer_renamed: dict[str, str] = {}
+        data = apply_aliases(data, source, layer_renamed)
+        normalised.append((data, source))
+        for key in leaf_keys(data) if by_user else ():
+            user_keys[key] = source
+            if key in layer_renamed:
+                renamed[key] = layer_renamed[key]
+            else:
+                renamed.pop(key, None)
+    cfg = build_config(RunConfig, normalised)
+    if check_variants and user_keys:
+        baseline = build_config(RunConfig, [n for n, (_, _, by_user) in zip(normalised, layers) if not by_user])
+        check_variant_keys(cfg, baseline, user_keys, renamed)
+    return cfg
 
 
 def config_to_dict(cfg: Any) -> Any:

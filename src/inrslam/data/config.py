@@ -6,7 +6,6 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 
-
 @dataclass
 class SceneConfig:
     """How a built-in scene is rendered. Every combination is deterministic from `seed` and cached."""
@@ -22,8 +21,31 @@ class SceneConfig:
 
 
 @dataclass
+class TumConfig:
+    """TUM RGB-D timestamp association (`data.tum.*`, used when the reader is tum)."""
+
+    max_dt_depth: float = 0.02  # max |t_rgb - t_depth| in seconds for a colour/depth pair
+    max_dt_pose: float = 0.02  # max |t_rgb - t_gt| s for the nearest GT pose; farther = invalid
+
+
+@dataclass
+class NeuralRgbdConfig:
+    """NeuralRGBD reader options (`data.neuralrgbd.*`, used when the reader is neuralrgbd)."""
+
+    depth_dir: str = "depth_filtered"  # depth folder (depth_filtered as the paper, or depth)
+
+
+@dataclass
+class SevenScenesConfig:
+    """7-Scenes reader options (`data.sevenscenes.*`, used when the reader is 7scenes)."""
+
+    sequence: str = ""  # frame sub-folder when there are several (e.g. seq-02); "" = the only one
+
+
+@dataclass
 class DataConfig:
-    """Which RGB-D sequence to read and how. Overrides apply to folder datasets (and bounds/cropping to all)."""
+    """Which RGB-D sequence to read and how. Overrides apply to folder datasets (and bounds/cropping to all); each
+    sub-section only to the reader (or, `builtin`, the built-in scenes) it is named after."""
 
     path: str = "builtin:room"  # dataset folder, or builtin:NAME for a built-in procedural scene
     dataset: str = "auto"  # reader name (replica, neuralrgbd, scannet, tum, 7scenes) or auto = detect the layout
@@ -38,8 +60,7 @@ class DataConfig:
     crop_edge: int = 0  # pixels removed on every image side (cx, cy shifted accordingly)
     depth_max: float = 0.0  # metres; depth beyond it is set to 0 (invalid); 0 = no clamp
     faithful_intrinsics: bool = False  # floor default intrinsics like the original (replica cx/cy 599/339, nrgbd f 554)
-    sequence: str = ""  # 7scenes: frame sub-folder when there are several (e.g. seq-02); "" = the only one
-    neuralrgbd_depth_dir: str = "depth_filtered"  # neuralrgbd: depth folder (depth_filtered as the paper, or depth)
-    tum_max_dt_depth: float = 0.02  # tum: max |t_rgb - t_depth| in seconds for a colour/depth pair
-    tum_max_dt_pose: float = 0.02  # tum: max |t_rgb - t_gt| s for the nearest GT pose; farther = invalid
     builtin: SceneConfig = field(default_factory=SceneConfig)  # options of builtin:NAME scenes
+    tum: TumConfig = field(default_factory=TumConfig)  # options of the tum reader
+    neuralrgbd: NeuralRgbdConfig = field(default_factory=NeuralRgbdConfig)  # options of the neuralrgbd reader
+    sevenscenes: SevenScenesConfig = field(default_factory=SevenScenesConfig)  # options of the 7scenes reader

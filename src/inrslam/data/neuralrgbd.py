@@ -60,7 +60,7 @@ class NeuralRGBDDataset(FolderDataset):
 
     def _scan(self) -> Optional[Intrinsics]:
         img_dir = self.root / "images"
-        depth_dir = self.root / self.cfg.neuralrgbd_depth_dir
+        depth_dir = self.root / self.cfg.neuralrgbd.depth_dir
         require_dir(img_dir, self.layout)
         require_dir(depth_dir, self.layout)
         colour = numbered_files(img_dir, r"img(\d+)\.(?:png|jpg)")

@@ -57,15 +57,16 @@ class SevenScenesDataset(FolderDataset):
 
     def _scan(self) -> Optional[Intrinsics]:
         folders = frame_folders(self.root)
-        if self.cfg.sequence:
-            folder = self.root / self.cfg.sequence
+        sequence = self.cfg.sevenscenes.sequence
+        if sequence:
+            folder = self.root / sequence
             if not _has_frames(folder):
-                raise DataError(f"{folder}: no frame-*.depth.png files (data.sequence = {self.cfg.sequence!r})")
+                raise DataError(f"{folder}: no frame-*.depth.png files (data.sevenscenes.sequence = {sequence!r})")
         elif not folders:
             raise DataError(f"{self.root}: no frames found (expected {self.layout})")
         elif len(folders) > 1:
             names = ", ".join(p.name for p in folders)
-            raise DataError(f"{self.root}: several sequences ({names}); choose one with data.sequence")
+            raise DataError(f"{self.root}: several sequences ({names}); choose one with data.sevenscenes.sequence")
         else:
             folder = folders[0]
         self.frame_dir = folder

@@ -7,8 +7,8 @@ Layout::
     <seq>/groundtruth.txt    "timestamp tx ty tz qx qy qz qw" (scalar-last quaternion), c2w of the colour camera,
                              OpenCV axes; optional (also accepted: pose.txt)
 
-Each colour frame is paired with the nearest depth frame (|dt| <= `tum_max_dt_depth`, one-to-one); colour frames
-without depth are dropped. The pose is the nearest ground-truth sample within `tum_max_dt_pose`, else invalid.
+Each colour frame is paired with the nearest depth frame (|dt| <= `data.tum.max_dt_depth`, one-to-one); colour frames
+without depth are dropped. The pose is the nearest ground-truth sample within `data.tum.max_dt_pose`, else invalid.
 Intrinsics: `intrinsics.json` (fx, fy, cx, cy, width, height, depth_scale; written by our TUM exporter) if present,
 else the published ROS-default calibration of freiburg1/2/3 chosen by the folder name (freiburg1 otherwise);
 lens distortion is not corrected.
@@ -103,9 +103,9 @@ class TUMDataset(FolderDataset):
         return (root / "rgb.txt").is_file() and (root / "depth.txt").is_file()
 
     def _scan(self) -> Optional[Intrinsics]:
-        max_dt_d, max_dt_p = self.cfg.tum_max_dt_depth, self.cfg.tum_max_dt_pose
+        max_dt_d, max_dt_p = self.cfg.tum.max_dt_depth, self.cfg.tum.max_dt_pose
         if max_dt_d < 0 or max_dt_p < 0:
-            raise ConfigError("data.tum_max_dt_depth / data.tum_max_dt_pose: must be >= 0 seconds")
+            raise ConfigError("data.tum.max_dt_depth / data.tum.max_dt_pose: must be >= 0 seconds")
         rgb_list, depth_list = self.root / "rgb.txt", self.root / "depth.txt"
         t_rgb, rgb_names = read_file_list(rgb_list)
         t_d, d_names = read_file_list(depth_list)
@@ -124,7 +124,7 @@ class TUMDataset(FolderDataset):
             raise DataError(
                 f"{rgb_list} / {depth_list}: no colour and depth timestamps within {max_dt_d} s of each other "
                 f"(colour {t_rgb[0]:.3f}..{t_rgb[-1]:.3f} s, depth {t_d[0]:.3f}..{t_d[-1]:.3f} s); "
-                "expected the lists of one sequence (or raise data.tum_max_dt_depth)"
+                "expected the lists of one sequence (or raise data.tum.max_dt_depth)"
             )
         ri = np.array([i for i, _ in pairs])
         di = np.array([d for _, d in pairs])

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 
 class Coupling(str, enum.Enum):
@@ -23,6 +23,14 @@ class KernelChoice(str, enum.Enum):
 
 
 @dataclass
+class MlpConfig:
+    """Trunk of the MLP representation (`field.mlp.*`, used when `field.encoding` is mlp)."""
+
+    width: int = 256  # width of the trunk
+    depth: int = 4  # number of layers of the trunk
+
+
+@dataclass
 class FieldConfig:
     """Scene representation F: encoding, resolutions, decoders, coupling and kernel choice."""
 
@@ -39,10 +47,9 @@ class FieldConfig:
     geo_feat_dim: int = 15  # geometric feature width passed to the colour decoder in coupled mode
     gamma: str = "identity"  # positional encoding of p̂ fed to decoders: identity | blob | freq
     hidden_dim: int = 32  # hidden width of the grid / plane decoders and of the MLP heads
-    mlp_width: int = 256  # width of the MLP representation's trunk
-    mlp_depth: int = 4  # number of layers of the MLP representation's trunk
     truncation: float = 0.1  # SDF truncation T, metres (field SDF is in units of T)
     kernel: KernelChoice = KernelChoice.AUTO  # lookup implementation: auto | torch | numba
     faithful: bool = False  # reproduce the original's quirks ([0,1] planes, ΣP⊙Σℓ TensoRF, cubic tcnn grids)
     grid_init: float = 1e-4  # grid features init U(−grid_init, grid_init)
     plane_init_std: float = 0.01  # plane / line features init N(0, plane_init_std²)
+    mlp: MlpConfig = field(default_factory=MlpConfig)  # the MLP representation's trunk

@@ -136,11 +136,11 @@ class MLPField(Field):
         super().__init__(cfg, bounds)
         self.coupling = Coupling(cfg.coupling)
         self.freq = FourierFeatures()
-        d, w, h = self.freq.out_dim, cfg.mlp_width, cfg.hidden_dim
+        d, w, h = self.freq.out_dim, cfg.mlp.width, cfg.hidden_dim
         g = cfg.geo_feat_dim if self.coupling is Coupling.COUPLED else 0
-        self.trunk = mlp_trunk(d, w, cfg.mlp_depth)
+        self.trunk = mlp_trunk(d, w, cfg.mlp.depth)
         self.sdf_head = nn.Sequential(nn.Linear(w, h), nn.ReLU(), nn.Linear(h, 1 + g))
-        self.rgb_trunk = mlp_trunk(d, w, cfg.mlp_depth) if self.coupling is Coupling.DECOUPLED else None
+        self.rgb_trunk = mlp_trunk(d, w, cfg.mlp.depth) if self.coupling is Coupling.DECOUPLED else None
         rgb_in = g + d if self.coupling is Coupling.COUPLED else w
         self.rgb_head = nn.Sequential(nn.Linear(rgb_in, h), nn.ReLU(), nn.Linear(h, 3))
 
@@ -251,9 +251,10 @@ def _validate(cfg: FieldConfig, bounds: np.ndarray) -> np.ndarray:
                           f"with max > min, got {np.asarray(bounds).tolist()}")
     if cfg.encoding not in ENCODINGS:
         raise ConfigError(f"field.encoding: {ENCODINGS.unknown_message(cfg.encoding)}")
-    for key in ("levels", "feature_dim", "hidden_dim", "mlp_width", "mlp_depth"):
-        if int(getattr(cfg, key)) < 1:
-            raise ConfigError(f"field.{key}: expected a positive integer, got {getattr(cfg, key)!r}")
+    for key, value in (("levels", cfg.levels), ("feature_dim", cfg.feature_dim), ("hidden_dim", cfg.hidden_dim),
+                       ("mlp.width", cfg.mlp.width), ("mlp.depth", cfg.mlp.depth)):
+        if int(value) < 1:
+            raise ConfigError(f"field.{key}: expected a positive integer, got {value!r}")
     for key in ("block_coarse", "block_fine", "app_block_coarse", "app_block_fine", "plane_block_coarse",
                 "truncation"):
         if not float(getattr(cfg, key)) > 0:

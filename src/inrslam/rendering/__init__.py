@@ -6,13 +6,17 @@ Data flow: `sample_depths` -> `render_rays(field, renderer, ...)` (F queried onc
 
 from inrslam.rendering.compositing import composite
 from inrslam.rendering.config import (
+    DensityConfig,
     LossConfig,
     LossReduction,
     NerfActivation,
+    NerfConfig,
+    NeusConfig,
     NormalsMethod,
     RenderConfig,
     SamplingConfig,
     SamplingVariant,
+    VolSdfConfig,
 )
 from inrslam.rendering.losses import compute_losses, depth_l1, psnr_from_mse
 from inrslam.rendering.render import RenderOutput, render_rays
@@ -21,15 +25,19 @@ from inrslam.rendering.sampling import aabb_exit, sample_depths, sample_pixels
 
 __all__ = [
     "RENDERERS",
+    "DensityConfig",
     "LossConfig",
     "LossReduction",
     "NerfActivation",
+    "NerfConfig",
+    "NeusConfig",
     "NormalsMethod",
     "RenderConfig",
     "RenderOutput",
     "SamplingConfig",
     "SamplingVariant",
     "SdfToWeights",
+    "VolSdfConfig",
     "aabb_exit",
     "build_renderer",
     "composite",

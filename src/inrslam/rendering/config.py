@@ -6,7 +6,7 @@ fixed; `faithful` values are noted per field.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 
 
@@ -40,23 +40,53 @@ class LossReduction(str, Enum):
 
 
 @dataclass
+class DensityConfig:
+    """SDF(density) options (`render.density.*`, used when `render.name` is density)."""
+
+    beta: float = 10.0  # sharpness beta of alpha = 1 - exp(-beta*sigmoid(-beta*s)), 1/T-units
+    learn_beta: bool = False  # optimise beta (the reference code never does, docs/spec.md §3.11)
+
+
+@dataclass
+class NeusConfig:
+    """NeuS options (`render.neus.*`, used when `render.name` is neus)."""
+
+    init_log_inv_s: float = 5.0  # initial log of the inverse std inv_s (1/m); e^5 = 148/m ~ 7 mm
+    learn_s: bool = True  # optimise inv_s (the reference keeps it fixed)
+    normals: NormalsMethod = NormalsMethod.AUTOGRAD  # how the SDF gradient is computed
+    fd_eps: float = 0.005  # finite-difference step, metres
+    anneal_end: float = 0.0  # cos annealing length as a fraction of the run (0 = true cosine from start)
+
+
+@dataclass
+class VolSdfConfig:
+    """VolSDF options (`render.volsdf.*`, used when `render.name` is volsdf)."""
+
+    beta_init: float = 0.01  # initial Laplace scale beta, metres
+    learn_beta: bool = True  # optimise beta
+    beta_min: float = 1e-4  # lower bound of beta, metres
+
+
+@dataclass
+class NerfConfig:
+    """Plain NeRF options (`render.nerf.*`, used when `render.name` is nerf)."""
+
+    activation: NerfActivation = NerfActivation.SOFTPLUS  # raw scalar -> density (1/m)
+
+
+@dataclass
 class RenderConfig:
-    """Rendering function G: per-sample SDF -> compositing weights (registry `RENDERERS`)."""
+    """Rendering function G: per-sample SDF -> compositing weights (registry `RENDERERS`). The keys at this level
+    apply to every renderer; each sub-section only to the renderer it is named after (setting another renderer's
+    section is a `ConfigError`, see `inrslam.config.variants`)."""
 
     name: str = "density"  # renderer: direct | density | neus | volsdf | nerf
-    beta: float = 10.0  # density: sharpness beta of alpha = 1 - exp(-beta*sigmoid(-beta*s)), 1/T-units
-    learn_beta: bool = False  # density: optimise beta (the reference code never does, docs/spec.md §3.11)
     beta_lr: float = 1e-3  # learning rate of every learnable rendering parameter (beta, inv_s, VolSDF beta)
-    neus_init_log_inv_s: float = 5.0  # NeuS: initial log of the inverse std inv_s (1/m); e^5 = 148/m ~ 7 mm
-    neus_learn_s: bool = True  # NeuS: optimise inv_s (the reference keeps it fixed)
-    neus_normals: NormalsMethod = NormalsMethod.AUTOGRAD  # NeuS: how the SDF gradient is computed
-    neus_fd_eps: float = 0.005  # NeuS: finite-difference step, metres
-    neus_anneal_end: float = 0.0  # NeuS: cos annealing length as a fraction of the run (0 = true cosine from start)
-    volsdf_beta_init: float = 0.01  # VolSDF: initial Laplace scale beta, metres
-    volsdf_learn_beta: bool = True  # VolSDF: optimise beta
-    volsdf_beta_min: float = 1e-4  # VolSDF: lower bound of beta, metres
-    nerf_activation: NerfActivation = NerfActivation.SOFTPLUS  # nerf: raw scalar -> density (1/m)
     faithful: bool = False  # reproduce the reference code's quirks (direct k=0 fallback, NeuS units/annealing)
+    density: DensityConfig = field(default_factory=DensityConfig)  # SDF(density)
+    neus: NeusConfig = field(default_factory=NeusConfig)  # NeuS
+    volsdf: VolSdfConfig = field(default_factory=VolSdfConfig)  # VolSDF
+    nerf: NerfConfig = field(default_factory=NerfConfig)  # plain NeRF density
 
 
 @dataclass

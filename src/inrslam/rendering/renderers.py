@@ -50,8 +50,8 @@ class SdfToWeights(nn.Module):
     def __init__(self, cfg: RenderConfig):
         super().__init__()
         self.faithful = bool(cfg.faithful)
-        self.normals_method = NormalsMethod(cfg.neus_normals)
-        self.fd_eps = float(cfg.neus_fd_eps)
+        self.normals_method = NormalsMethod(cfg.neus.normals)
+        self.fd_eps = float(cfg.neus.fd_eps)
         self.progress = 1.0
 
     def set_progress(self, progress: float) -> None:
@@ -84,13 +84,13 @@ class DensityWeights(SdfToWeights):
     """SDF(density) (docs/spec.md §4.2; StyleSDF, Or-El et al. CVPR 2022, as used by ESLAM, Johari et al. CVPR 2023).
 
     α_i = 1 - exp(-β σ(-β s_i)),  w_i = α_i Π_{j<i} (1 - α_j),  β in 1/T-units (default 10, fixed unless
-    `learn_beta`). No sample spacing enters (σ·δ := 1), so the result depends on the sampling density: with the
-    paper's 60 samples it saturates ~1-2 cm in front of the surface (measured in tests/rendering).
+    `render.density.learn_beta`). No sample spacing enters (σ·δ := 1), so the result depends on the sampling
+    density: with the paper's 60 samples it saturates ~1-2 cm in front of the surface (measured in tests/rendering).
     """
 
     def __init__(self, cfg: RenderConfig):
         super().__init__(cfg)
-        self.beta = _scalar_param(cfg.beta, cfg.learn_beta)
+        self.beta = _scalar_param(cfg.density.beta, cfg.density.learn_beta)
 
     def forward(self, sdf, z, dirs, normals, truncation):
         beta = self.beta.clamp_min(1e-3)
@@ -103,11 +103,11 @@ class NeusWeights(SdfToWeights):
 
     Work in metric SDF f = s·T. Section i = [b_i, b_{i+1}] around sample z_i (mid-point partition,
     `functional.section_bounds`); slope ĉ_i = annealed ⟨d/|d|, ∇f(x_i)⟩ with the *unit ray direction* and the
-    gradient of the SDF output only (computed by `render_rays`, `RenderConfig.neus_normals`);
+    gradient of the SDF output only (computed by `render_rays`, `render.neus.normals`);
     f_prev/next = f_i + ĉ_i (b - z_i)|d| (lengths in metres along the ray);
     α_i = clip((Φ(f_prev) - Φ(f_next)) / Φ(f_prev), 0, 1), Φ(x) = σ(inv_s·x), w_i = α_i Π_{j<i}(1 - α_j).
 
-    inv_s (1/m) = exp(log_inv_s), learnable by default. Init `neus_init_log_inv_s` = 5: inv_s = 148/m, a 7 mm
+    inv_s (1/m) = exp(log_inv_s), learnable by default. Init `render.neus.init_log_inv_s` = 5: inv_s = 148/m, a 7 mm
     logistic scale, about a third of the surface-sample spacing (20 cm / 11). NeuS starts far softer (its photometric
     training must find the surface); here the SDF is supervised from depth from the first iteration, so we start
     near the converged sharpness that the 60-sample layout can resolve (tests/rendering: 1.8 mm plane/sphere depth
@@ -117,7 +117,7 @@ class NeusWeights(SdfToWeights):
     queries, first-order only) or `AUTOGRAD_DETACHED` (cheapest; the cosine does not train the field).
 
     Annealing: NeuS anneals the cosine from (cos-1)/2 to -ReLU(-cos) over the first `anneal_end` of training.
-    We default to no annealing (`neus_anneal_end = 0`): in SLAM the SDF is supervised directly from depth from
+    We default to no annealing (`render.neus.anneal_end = 0`): in SLAM the SDF is supervised directly from depth from
     the first iteration, so the 'back-face' smoothing the annealing provides for photometric-only NeuS is not
     needed; `set_progress(frame / last_frame)` drives it when enabled.
 
@@ -135,8 +135,8 @@ class NeusWeights(SdfToWeights):
             self.anneal_end = 0.1
             self.normals_method = NormalsMethod.AUTOGRAD_DETACHED
         else:
-            self.log_inv_s = _scalar_param(cfg.neus_init_log_inv_s, cfg.neus_learn_s)
-            self.anneal_end = float(cfg.neus_anneal_end)
+            self.log_inv_s = _scalar_param(cfg.neus.init_log_inv_s, cfg.neus.learn_s)
+            self.anneal_end = float(cfg.neus.anneal_end)
 
     @property
     def inv_s(self) -> Tensor:
@@ -175,11 +175,12 @@ class VolSdfWeights(SdfToWeights):
 
     def __init__(self, cfg: RenderConfig):
         super().__init__(cfg)
-        self.beta_min = float(cfg.volsdf_beta_min)
-        if cfg.volsdf_beta_init <= self.beta_min:
-            raise ConfigError(f"render.volsdf_beta_init ({cfg.volsdf_beta_init}) must exceed render.volsdf_beta_min "
-                              f"({cfg.volsdf_beta_min})")
-        self.log_beta = _scalar_param(math.log(cfg.volsdf_beta_init - self.beta_min), cfg.volsdf_learn_beta)
+        v = cfg.volsdf
+        self.beta_min = float(v.beta_min)
+        if v.beta_init <= self.beta_min:
+            raise ConfigError(f"render.volsdf.beta_init ({v.beta_init}) must exceed render.volsdf.beta_min "
+                              f"({v.beta_min})")
+        self.log_beta = _scalar_param(math.log(v.beta_init - self.beta_min), v.learn_beta)
 
     @property
     def beta(self) -> Tensor:
@@ -206,7 +207,7 @@ class NerfWeights(SdfToWeights):
 
     def __init__(self, cfg: RenderConfig):
         super().__init__(cfg)
-        self.activation = NerfActivation(cfg.nerf_activation)
+        self.activation = NerfActivation(cfg.nerf.activation)
 
     def forward(self, sdf, z, dirs, normals, truncation):
         sigma = torch.nn.functional.softplus(sdf) if self.activation is NerfActivation.SOFTPLUS else torch.relu(sdf)

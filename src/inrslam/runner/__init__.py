@@ -52,7 +52,7 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
     rd = RunDir(run_dir)
     if not rd.holds_run():
         raise ConfigError(f"{run_dir}: not a run directory (no config.yaml)")
-    cfg = load_config(rd.config, preset=None)
+    cfg = load_config(rd.config, preset=None, check_variants=False)  # checked when the run was made
     dataset = open_dataset(cfg.data)
     threads = _recorded_threads(run_dir) if not cfg.threads else None
     threads = threads or resolve_threads(cfg.threads)

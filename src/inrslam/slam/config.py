@@ -95,8 +95,7 @@ class SlamConfig:
     bundle_adjust: bool = True  # optimise keyframe poses (first keyframe fixed) during mapping
     ba_lr: float = 1e-3  # Adam learning rate of keyframe poses
     ba_pose_every: int = 5  # pose step every N mapping iterations (gradients accumulate in between)
-    keyframe_fraction: float = 0.05  # fraction of each keyframe's pixels stored for global sampling
-    keyframe_variant: bool = False  # Table-3 keyframe variant: store 0.5 % instead of keyframe_fraction
+    keyframe_fraction: float = 0.05  # fraction of each keyframe's pixels kept for global sampling (Table 3: 0.005)
     max_pose_jump: float = 0.5  # metres; a tracked pose moving more than this from the prediction is rejected
     checkpoint_every: int = 50  # frames between checkpoints (0 = only at the end)
     mesh_every: int = 0  # extract an intermediate mesh every N frames (0 = only at the end)

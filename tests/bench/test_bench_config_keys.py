@@ -1,0 +1,59 @@
+"""Sweeps and the per-variant config sections: an override must apply to some run it reaches; run directories
+written with the old flat keys are compared (and resumed) under the new names."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from inrslam.bench.spec import expand, load_spec, validate_runs
+from inrslam.bench.sweep import config_differences, run_sweep
+from inrslam.config.loader import load_config
+from inrslam.errors import ConfigError
+
+FAKE = "inrslam.bench.testing:fake_run"
+OLD_PAPER = Path(__file__).parents[1] / "config" / "old_configs" / "paper_bb6d453.yaml"  # written at bb6d453
+
+
+def _validate(spec: dict) -> dict:
+    sp = load_spec(spec)
+    return validate_runs(expand(sp), sp.source, check_paths=False, spec=sp)
+
+
+def test_sweep_override_for_some_of_the_renders_applies_to_those_runs():
+    spec = {"encodings": ["dense"], "renders": ["density", "neus"], "scenes": ["builtin:room"], "presets": ["quick"],
+            "overrides": {"render.density.beta": 5, "render": {"neus_fd_eps": 0.01}}}
+    cfgs = _validate(spec)
+    density, neus = (cfgs[f"room__dense__{r}__quick__s0"] for r in ("density", "neus"))
+    assert density.render.density.beta == 5.0 and neus.render.neus.fd_eps == 0.01
+    assert neus.render.density.beta == 5.0  # unused by the neus run, as a preset's key would be
+
+
+def test_sweep_override_that_applies_to_no_run_is_an_error():
+    spec = {"encodings": ["dense", "hash"], "renders": ["density", "direct"], "scenes": ["builtin:room"],
+            "presets": ["quick"], "overrides": ["render.neus_fd_eps=0.01"]}
+    with pytest.raises(ConfigError, match=r"'render.neus.fd_eps' \(from <dict>: overrides, set as 'render.neus_fd_eps'"
+                                          r"\) applies to render.name=neus, but no run of the sweep selects it "
+                                          r"\(render.name is 'density'; render.name is 'direct'\)"):
+        _validate(spec)
+    scene = {"name": "room", "path": "builtin:room", "overrides": {"data.tum.max_dt_depth": 0.1}}
+    with pytest.raises(ConfigError, match=r"'data.tum.max_dt_depth' \(from <dict>: scene 'room' overrides\) applies "
+                                          r"to data.dataset=tum, but no run .*data.path is 'builtin:room'"):
+        _validate({**spec, "overrides": {}, "scenes": [scene]})
+
+
+def test_sweep_resumes_run_directories_written_with_old_keys(tmp_path):
+    spec = {"encodings": ["dense"], "renders": ["density"], "scenes": ["builtin:room"], "presets": ["paper"]}
+    out = tmp_path / "sweep"
+    run_sweep(spec, out, run_fn=FAKE, quiet=True, report=False)
+    run_dir = out / "room__dense__density__paper__s0"
+    old = OLD_PAPER.read_text()
+    assert "  beta: 10.0\n" in old and "keyframe_variant: false" in old
+    (run_dir / "config.yaml").write_text(old)  # the same config, spelled the old way
+    assert config_differences(run_dir, load_config(preset="paper")) == []
+    assert run_sweep(spec, out, run_fn=FAKE, quiet=True, report=False).count("skipped") == 1
+    # an old key with another value is a difference, reported under its new name
+    (run_dir / "config.yaml").write_text(old.replace("  beta: 10.0\n", "  beta: 5.0\n"))
+    with pytest.raises(ConfigError, match=r"different config \(render.density.beta: 5.0 -> 10.0\)"):
+        run_sweep(spec, out, run_fn=FAKE, quiet=True, report=False)
