@@ -285,8 +285,7 @@ class SlamSystem:
 
     def _add_keyframe(self, i: int, ft: FrameTensors) -> None:
         cfg = self.cfg.slam
-        fraction = 0.005 if cfg.keyframe_variant else cfg.keyframe_fraction
-        n = max(1, int(round(fraction * ft.intr.height * ft.intr.width)))
+        n = max(1, int(round(cfg.keyframe_fraction * ft.intr.height * ft.intr.width)))
         self.store.add(i, *ft.random_rays(n, self.generator))
 
     # -- results ---------------------------------------------------------------------------------------------------
