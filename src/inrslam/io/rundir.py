@@ -105,6 +105,15 @@ class RunDir:
         except (OSError, ValueError):
             return None
 
+    def corrupt_files(self, keys: tuple[str, ...] = ("run_info", "metrics")) -> list[str]:
+        """File names among `keys` that exist but do not hold a JSON object (truncated, edited, not JSON)."""
+        bad = []
+        for key in keys:
+            path = self.path(key)
+            if path.is_file() and not isinstance(self.read_json(key), dict):
+                bad.append(path.name)
+        return bad
+
     def read_metrics(self) -> dict | None:
         m = self.read_json("metrics")
         return m if isinstance(m, dict) else None
