@@ -332,14 +332,14 @@ def _check_finished(run_dir: Path, run_info: Mapping[str, Any]) -> None:
     if status in FINISHED_STATUSES and rd.trajectory.is_file():
         return
     what = f"status {status}" if status is not None else "no run_info.json status"
-    if status in FINISHED_STATUSES:
+    if not rd.trajectory.is_file():
         what += ", no trajectory.txt"
     if rd.has_checkpoint():
         raise DataError(f"{run_dir}: the run is incomplete ({what}): resume it with inrslam run --resume {run_dir}")
     if rd.holds_run():
         raise DataError(f"{run_dir}: the run is incomplete ({what}, no checkpoint yet): start it again with "
                         f"inrslam run --config {rd.config} --out {run_dir} --overwrite")
-    raise DataError(f"{run_dir}: not a finished run directory ({what}, no trajectory.txt or config.yaml)")
+    raise DataError(f"{run_dir}: not a finished run ({what}) and no config.yaml to continue it from")
 
 
 def _mesh_eval(rec: trimesh.Trimesh, gt: trimesh.Trimesh, cams: np.ndarray, intr: Intrinsics, cfg: EvalConfig,
