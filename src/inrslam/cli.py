@@ -5,18 +5,29 @@
     inrslam eval RUN_DIR | --traj EST --gt GT | --mesh REC.ply --gt-mesh GT.ply [--cameras GT_TRAJ]
     inrslam bench SPEC.yaml --out DIR [--jobs N] [--executor local|ray|slurm]
     inrslam report RUNS_DIR
+    inrslam export SCENE --layout replica|tum --out DIR
+
+Errors a user can fix print one line `inrslam COMMAND: error: ...` and exit 2; Ctrl-C prints how to resume and exits
+130; `bench` exits 1 when some runs failed (docs/reliability.md).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 from inrslam.errors import InrslamError
 
 TRAJ_MAX_DIFF = 0.02  # s, default `--max-diff` of `inrslam eval --traj/--gt`
+EXIT_ERROR = 2  # a user-fixable error (one line on stderr)
+EXIT_RUNS_FAILED = 1  # `bench`: the sweep went through but some runs failed
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT), as shells report it
+DEVICE_RE = re.compile(r"auto|cpu|cuda(:\d+)?")
 
 
 def _registry_help() -> tuple[str, str]:
@@ -26,10 +37,21 @@ def _registry_help() -> tuple[str, str]:
     return ENCODINGS.describe(), RENDERERS.describe()
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from inrslam.config.loader import preset_names
+def _shipped_presets() -> list[str]:
+    """`inrslam.config.loader.preset_names` without importing the loader (it imports the whole config schema, with
+    torch): the names of the shipped preset files."""
+    return sorted(p.stem for p in (Path(__file__).parent / "configs").glob("*.yaml"))
 
-    enc_help, ren_help = _registry_help()
+
+def build_parser(registry_help: bool = True) -> argparse.ArgumentParser:
+    """The argument parser. `registry_help=False` skips importing the encodings / renderers (torch) for the
+    `run --encoding / --render` help text: `main` does so for every command but `run`, which keeps them quick."""
+    if registry_help:
+        from inrslam.config.loader import preset_names
+    else:
+        preset_names = _shipped_presets
+
+    enc_help, ren_help = _registry_help() if registry_help else ("see `inrslam run --help`",) * 2
     p = argparse.ArgumentParser(prog="inrslam", description="Neural implicit RGB-D SLAM: run, evaluate, benchmark.")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
@@ -96,7 +118,82 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("report", help="aggregate run directories into leaderboards, plots and an HTML report")
     rep.add_argument("runs_dir", help="folder containing run directories")
     rep.add_argument("--out", help="report folder (default RUNS_DIR/report)")
+
+    x = sub.add_parser("export", help="write a built-in scene in the Replica or TUM RGB-D folder layout",
+                       description="Render a built-in scene (`inrslam scenes`) and write it as a dataset folder that "
+                                   "`inrslam run --data DIR` (and other tools) read: Replica (NICE-SLAM release) or "
+                                   "TUM RGB-D layout, with the ground-truth mesh.")
+    x.add_argument("scene", help="built-in scene name (or builtin:NAME)")
+    x.add_argument("--layout", required=True, choices=["replica", "tum"], help="folder layout to write")
+    x.add_argument("--out", required=True, help="new (or empty) folder to write")
+    x.add_argument("--frames", type=int, default=0, help="number of frames (default: the scene's own length)")
+    x.add_argument("--width", type=int, default=0, help="image width in pixels (default: the scene's)")
+    x.add_argument("--height", type=int, default=0, help="image height in pixels (default: the scene's)")
+    x.add_argument("--seed", type=int, default=0, help="seed of layout, camera path and sensor noise (default 0)")
     return p
+
+
+def _check_out_dir(path: str | os.PathLike, flag: str = "--out") -> None:
+    """InrslamError unless `path` is, or can be created as, a folder this process can write in. Creates nothing
+    (a probe file in the nearest existing folder is made and removed)."""
+    from inrslam.errors import ConfigError
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"{flag} {p}: exists and is not a directory")
+    base = p.absolute()
+    while not base.exists():
+        base = base.parent
+    if not base.is_dir():
+        raise ConfigError(f"{flag} {p}: {base} is a file, not a directory")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".inrslam-write-check-", dir=base)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise ConfigError(f"{flag} {p}: cannot write in {base} ({e.strerror or e})") from None
+
+
+def _check_device(cfg) -> None:
+    """ConfigError for a device name other than auto, cpu, cuda, cuda:N, or CUDA asked for but not available."""
+    from inrslam.errors import ConfigError
+    from inrslam.slam.system import resolve_device
+
+    if not DEVICE_RE.fullmatch(str(cfg.device)):
+        raise ConfigError(f"config key 'device' (--device): expected auto, cpu, cuda or cuda:N, got {cfg.device!r}")
+    resolve_device(cfg.device)
+
+
+def _absolute_paths(cfg):
+    """`cfg` with `data.path` and `eval.virtual_cameras` absolute (relative to the current directory), so the run's
+    config.yaml and run_info.json still point at the data from any directory (`--resume`, `eval`)."""
+    from dataclasses import replace
+
+    from inrslam.datasets import absolute_data_config, absolute_path
+
+    cfg = replace(cfg, data=absolute_data_config(cfg.data))
+    if cfg.eval.virtual_cameras:
+        cfg = replace(cfg, eval=replace(cfg.eval, virtual_cameras=str(absolute_path(cfg.eval.virtual_cameras))))
+    return cfg
+
+
+def _check_resumable_data(run_dir: str) -> None:
+    """ConfigError when the run's config.yaml names its dataset folder by a relative path that does not exist from
+    here (runs made before paths were recorded absolute)."""
+    import yaml
+
+    from inrslam.errors import ConfigError
+    from inrslam.io.rundir import RunDir
+
+    cfg_path = RunDir(run_dir).config
+    try:
+        path = str(((yaml.safe_load(cfg_path.read_text()) or {}).get("data") or {}).get("path") or "")
+    except (OSError, yaml.YAMLError, AttributeError):
+        return  # resume_slam reports a missing / unreadable config.yaml itself
+    if path and not path.startswith("builtin:") and not Path(path).expanduser().is_absolute() \
+            and not Path(path).expanduser().is_dir():
+        raise ConfigError(f"{cfg_path}: data.path {path!r} is relative and not found from {Path.cwd()}; resume from "
+                          "the directory the run was started in, or set data.path in that file to the absolute folder")
 
 
 def _run_command(args) -> int:
@@ -106,17 +203,22 @@ def _run_command(args) -> int:
     from inrslam.runner import resume_slam, run_slam
 
     console = Console(stderr=False)
-    progress_cb, finish = _progress(console, quiet=args.quiet)
     if args.resume:
         given = [f"--{k.replace('_', '-')}" for k in ("data", "out", "encoding", "render", "max_frames", "config",
                                                       "dataset", "device", "seed") if getattr(args, k) is not None]
         if given or args.overrides:
             raise InrslamError(f"inrslam run --resume continues a run with its own config.yaml; do not combine it "
                                f"with {', '.join(given + list(args.overrides))}")
-        run_dir = resume_slam(args.resume, progress=progress_cb)
+        _check_resumable_data(args.resume)
+        progress_cb, finish = _progress(console, quiet=args.quiet)
+        try:
+            run_dir = resume_slam(args.resume, progress=progress_cb)
+        finally:
+            finish()
     else:
         if not args.out:
             raise InrslamError("inrslam run: --out DIR is required (or --resume DIR)")
+        _check_out_dir(args.out)
         ov = list(args.overrides)
         for flag, key in (("data", "data.path"), ("encoding", "field.encoding"), ("render", "render.name"),
                           ("max_frames", "data.max_frames"), ("dataset", "data.dataset"), ("device", "device"),
@@ -124,10 +226,14 @@ def _run_command(args) -> int:
             val = getattr(args, flag)
             if val is not None:
                 ov.append(f"{key}={val}")
-        cfg = load_config(args.config, preset=args.preset, overrides=ov)
+        cfg = _absolute_paths(load_config(args.config, preset=args.preset, overrides=ov))
         _check_registry_names(cfg)
-        run_dir = run_slam(cfg, args.out, progress=progress_cb, overwrite=args.overwrite)
-    finish()
+        _check_device(cfg)
+        progress_cb, finish = _progress(console, quiet=args.quiet)
+        try:
+            run_dir = run_slam(cfg, args.out, progress=progress_cb, overwrite=args.overwrite)
+        finally:
+            finish()
     if not args.quiet:
         _print_metrics(console, run_dir)
     return 0
@@ -282,7 +388,7 @@ def _run_eval_config(args):
     if args.icp is not None:
         cfg = replace(cfg, icp=bool(args.icp))
     if args.virtual_cameras:
-        cfg = replace(cfg, virtual_cameras=str(args.virtual_cameras))
+        cfg = replace(cfg, virtual_cameras=os.path.abspath(args.virtual_cameras))
     if args.cull_gt:
         cfg = replace(cfg, cull_gt=True)
     return cfg
@@ -291,31 +397,79 @@ def _run_eval_config(args):
 def _bench_command(args) -> int:
     from inrslam.bench.sweep import run_sweep
 
-    run_sweep(args.spec, args.out, jobs=args.jobs, executor=args.executor, address=args.address,
-              partition=args.partition, time_min=args.time, dry_run=args.dry_run)
+    if not args.dry_run:
+        _check_out_dir(args.out)
+    res = run_sweep(args.spec, args.out, jobs=args.jobs, executor=args.executor, address=args.address,
+                    partition=args.partition, time_min=args.time, dry_run=args.dry_run)
+    if res.failed:
+        print(f"inrslam bench: {len(res.failed)} of {len(res.runs)} runs failed (reasons in "
+              f"{Path(args.out) / '<run>' / 'error.txt'}); the same command retries them", file=sys.stderr)
+        return EXIT_RUNS_FAILED
     return 0
 
 
 def _report_command(args) -> int:
-    from inrslam.bench.report import build_report
+    from inrslam.bench.leaderboard import collect_runs
+    from inrslam.bench.report import build_report, status_summary
 
+    if Path(args.runs_dir).is_dir():
+        _check_out_dir(args.out or Path(args.runs_dir) / "report")
     out = build_report(args.runs_dir, args.out)
-    print(f"report written to {out}")
+    print(f"report written to {out} ({status_summary(collect_runs(args.runs_dir, exclude=out))})")
+    return 0
+
+
+def _export_command(args) -> int:
+    from inrslam.errors import ConfigError
+    from inrslam.scenes import SceneConfig, export_replica, export_tum, load_scene
+
+    out = Path(args.out)
+    _check_out_dir(out)
+    if out.is_dir() and any(out.iterdir()):
+        raise ConfigError(f"--out {out}: exists and is not empty (give a new or empty folder)")
+    name = args.scene.removeprefix("builtin:")
+    dataset = load_scene(name, SceneConfig(frames=args.frames, width=args.width, height=args.height, seed=args.seed))
+    (export_replica if args.layout == "replica" else export_tum)(dataset, out)
+    print(f"exported builtin:{name} ({len(dataset)} frames, {args.layout} layout) to {out}; "
+          f"run it with: inrslam run --data {out} --out RUN_DIR")
     return 0
 
 
 COMMANDS = {"run": _run_command, "scenes": _scenes_command, "config": _config_command, "eval": _eval_command,
-            "bench": _bench_command, "report": _report_command}
+            "bench": _bench_command, "report": _report_command, "export": _export_command}
+
+
+def _interrupted_message(args) -> str:
+    """What Ctrl-C left behind and the command that continues it (one line)."""
+    from inrslam.io.rundir import RunDir
+
+    if args.command == "run":
+        out = args.resume or args.out
+        rd = RunDir(out) if out else None
+        if rd is not None and rd.has_checkpoint():
+            return f"interrupted; the run can be resumed from its last checkpoint: inrslam run --resume {out}"
+        if rd is not None and rd.holds_run():
+            return (f"interrupted before the first checkpoint; start it again with: inrslam run --config "
+                    f"{rd.config} --out {out} --overwrite")
+        return "interrupted before the run started; nothing was written"
+    if args.command == "bench":
+        return (f"interrupted; finished runs are kept and checkpointed ones continue: resume the sweep with "
+                f"inrslam bench {args.spec} --out {args.out}")
+    return "interrupted"
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(registry_help=argv[:1] == ["run"])
     args = parser.parse_args(argv)
     try:
         return COMMANDS[args.command](args)
     except InrslamError as e:
         print(f"inrslam {args.command}: error: {e}", file=sys.stderr)
-        return 2
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print(f"inrslam {args.command}: {_interrupted_message(args)}", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

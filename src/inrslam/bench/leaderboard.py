@@ -120,7 +120,11 @@ def find_run_dirs(runs_dir: str | os.PathLike, exclude: Path | None = None) -> l
 
 
 def read_run(run_dir: str | os.PathLike) -> RunRecord:
-    """RunRecord from one run directory (missing files give empty fields)."""
+    """RunRecord from one run directory (missing files give empty fields).
+
+    `status` is "complete", "corrupt: <files>" (run_info.json / metrics.json present but not a JSON object: never
+    counted complete), "failed" (error.txt), else run_info.json's status or "not started".
+    """
     d = Path(run_dir)
     rd = RunDir(d)
     metrics = rd.read_metrics() or {}
@@ -139,8 +143,12 @@ def read_run(run_dir: str | os.PathLike) -> RunRecord:
     if rd.error.is_file():
         lines = [ln for ln in rd.error.read_text().splitlines() if ln.strip()]
         err = lines[-1] if lines else "error"
-    complete = rd.is_complete()
-    status = "complete" if complete else ("failed" if err else info.get("status", "not started"))
+    corrupt = rd.corrupt_files()
+    complete = rd.is_complete() and not corrupt
+    if corrupt:
+        status = "corrupt: " + ", ".join(corrupt)
+    else:
+        status = "complete" if complete else ("failed" if err else str(info.get("status", "not started")))
     return RunRecord(run_dir=d, name=d.name, scene=str(scene), encoding=str(encoding), render=str(render),
                      preset=str(bench.get("preset") or ""), seed=seed, complete=complete, status=status,
                      metrics=metrics if complete else {}, config=config, error=err)

@@ -24,6 +24,7 @@ from inrslam.bench.leaderboard import (COLUMNS, RunRecord, aggregate, by_scene, 
 from inrslam.bench.plots import plot_ate_over_frames, plot_bars, plot_tradeoff
 from inrslam.bench.spec import sanitize
 from inrslam.bench.sweep import STATUS_FILE
+from inrslam.errors import DataError
 from inrslam.io.atomic import write_text
 from inrslam.io.rundir import read_json
 
@@ -44,6 +45,14 @@ def runs_csv(records: list[RunRecord]) -> str:
     return buf.getvalue()
 
 
+def status_summary(records: list[RunRecord]) -> str:
+    """'5 runs: 3 complete, 1 corrupt: metrics.json, 1 running' (statuses in order of first appearance)."""
+    counts: dict[str, int] = {}
+    for r in records:
+        counts[r.status] = counts.get(r.status, 0) + 1
+    return f"{len(records)} runs" + (": " + ", ".join(f"{n} {s}" for s, n in counts.items()) if counts else "")
+
+
 def _write_tables(out: Path, stem: str, rows, title: str, scene: str | None = None) -> None:
     write_text(out / f"{stem}.md", to_markdown(rows, COLUMNS, title=title))
     write_text(out / f"{stem}.csv", to_csv(rows, COLUMNS, scene=scene))
@@ -51,8 +60,14 @@ def _write_tables(out: Path, stem: str, rows, title: str, scene: str | None = No
 
 
 def build_report(runs_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
-    """Aggregate every run directory under `runs_dir` into `out` (default `runs_dir/report`). Returns `out`."""
+    """Aggregate every run directory under `runs_dir` into `out` (default `runs_dir/report`). Returns `out`.
+
+    Raises DataError (and creates nothing) when `runs_dir` is not an existing folder.
+    """
     runs_dir = Path(runs_dir)
+    if not runs_dir.is_dir():
+        what = "is not a folder" if runs_dir.exists() else "does not exist"
+        raise DataError(f"{runs_dir}: runs folder {what} (give the folder holding the run directories)")
     out = Path(out) if out is not None else runs_dir / "report"
     out.mkdir(parents=True, exist_ok=True)
     records = collect_runs(runs_dir, exclude=out)

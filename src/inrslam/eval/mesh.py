@@ -206,6 +206,27 @@ def visibility_counts(
     return n_in, n_obs
 
 
+GT_CULL_MAX_EDGE = 0.05
+"""Metres: `--cull-gt` splits ground-truth triangles to at most this edge length before culling (GT meshes often model
+a wall as two triangles). The kept GT then overshoots the seen region by less than one such edge."""
+
+
+def subdivide_to_edge(mesh: trimesh.Trimesh, max_edge: float) -> trimesh.Trimesh:
+    """`mesh` with every triangle that has an edge longer than `max_edge` (m) split into four, repeatedly, until none
+    has (`trimesh.remesh.subdivide_to_size`). Returns `mesh` itself when no edge is longer; vertex colours are not
+    carried over to a split mesh (the metrics use geometry only)."""
+    if max_edge <= 0:
+        raise ValueError(f"subdivide_to_edge: max_edge must be > 0, got {max_edge}")
+    if len(mesh.faces) == 0:
+        return mesh
+    longest = float(mesh.edges_unique_length.max())
+    if longest <= max_edge:
+        return mesh
+    iters = int(np.ceil(np.log2(longest / max_edge))) + 2
+    v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge, max_iter=iters)
+    return trimesh.Trimesh(v, f, process=False)
+
+
 def cull_mesh(
     mesh: trimesh.Trimesh,
     c2ws: np.ndarray,
@@ -221,6 +242,8 @@ def cull_mesh(
        the mesh itself, ray cast double-sided, eps tolerance);
     3. keep a face iff (some vertex has in-frustum count > 0) and (some vertex has observed count > 0);
     4. drop unreferenced vertices (vertex colours follow).
+    Visibility is decided per vertex, so a large triangle whose corners no camera sees goes although its middle is
+    seen: split such meshes first (`subdivide_to_edge`; `--cull-gt` does so for the GT mesh).
     With `occlusion=False` only the frustum test is applied. The Co-SLAM "virtual camera" variant is the same
     with extra (virtual) poses appended to `c2ws` (`EvalConfig.virtual_cameras`, `inrslam.eval.run.culling_cameras`).
 

@@ -20,7 +20,7 @@ from rich.table import Table
 from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.errors import DataError
 from inrslam.eval.config import Alignment, EvalConfig
-from inrslam.eval.mesh import cull_mesh, mesh_metrics
+from inrslam.eval.mesh import GT_CULL_MAX_EDGE, cull_mesh, mesh_metrics, subdivide_to_edge
 from inrslam.eval.trajectory import associate, ate, drift_per_100, rpe
 from inrslam.io.atomic import atomic_path
 from inrslam.io.rundir import RunDir
@@ -44,6 +44,20 @@ RESULT_KEYS = (
     "comp_ratio",
     "frames",
 )
+
+#: every key of the trajectory family (`trajectory_metrics` + the relative trajectory): all of them are rewritten on
+#: each evaluation, null when the trajectory or its ground truth is missing, so no stale value survives.
+TRAJECTORY_KEYS = (
+    "ate_rmse_m", "ate_mean_m", "ate_median_m", "ate_std_m", "ate_min_m", "ate_max_m", "ate_n_used",
+    "ate_n_excluded", "ate_scale", "rpe_trans_m", "rpe_rot_deg", "rpe_n_pairs", "drift_m_per_100",
+    "unaligned_final_m", "ate_keyframes_rmse_m", "ate_keyframes_n_used", "ate_relative_rmse_m",
+)
+
+#: keys of the mesh family (Acc / Comp / Comp%), likewise rewritten together.
+MESH_KEYS = ("acc_m", "comp_m", "comp_ratio")
+
+#: `run_info.json` statuses after which a run directory holds its final trajectory and mesh.
+FINISHED_STATUSES = ("slam_done", "complete")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -170,11 +184,45 @@ def _keyframe_rows(run_dir: Path, run_info: dict, ts_est: np.ndarray, max_diff: 
     return kf[(kf >= 0) & (kf < len(ts_est))]
 
 
-def _resolve(run_dir: Path, p: Optional[str]) -> Optional[Path]:
+def _config_data_path(run_dir: Path) -> Optional[str]:
+    """`data.path` of the run's config.yaml, or None (missing / unreadable file, built-in scene)."""
+    import yaml
+
+    try:
+        cfg = yaml.safe_load(RunDir(run_dir).config.read_text()) or {}
+        path = (cfg.get("data") or {}).get("path")
+    except (OSError, yaml.YAMLError, AttributeError):
+        return None
+    return str(path) if path and not str(path).startswith("builtin:") else None
+
+
+def resolve_gt_mesh(run_dir: PathLike, run_info: Mapping[str, Any]) -> Optional[Path]:
+    """The GT mesh file of a run: `run_info["gt_mesh"]` when absolute (runs record absolute paths), else found for
+    an older run that recorded the path relative to the directory it was started from (like its `data.path`).
+
+    A relative path P is looked up (first existing file wins) as: the data root (config.yaml `data.path` when
+    absolute, else the relative root found from the places below) joined with P taken relative to the recorded root
+    (`run_info["dataset"]["root"]`); then P itself from the run directory, the current directory and each parent
+    of the run directory. None when the run names no GT mesh; the first candidate when none exists (for the message).
+    """
+    p = run_info.get("gt_mesh")
     if not p:
         return None
-    path = Path(p).expanduser()
-    return path if path.is_absolute() else (run_dir / path)
+    path = Path(str(p)).expanduser()
+    if path.is_absolute():
+        return path
+    run_dir = Path(run_dir)
+    bases = [run_dir.absolute(), Path.cwd(), *run_dir.absolute().parents]
+    cands: list[Path] = []
+    recorded_root = str((run_info.get("dataset") or {}).get("root") or "")
+    cfg_root = _config_data_path(run_dir)
+    if recorded_root and not Path(recorded_root).is_absolute():
+        rel = Path(os.path.relpath(path, recorded_root))
+        roots = [Path(cfg_root)] if cfg_root and Path(cfg_root).is_absolute() else []
+        roots += [b / (cfg_root or recorded_root) for b in bases]
+        cands += [r / rel for r in roots if r.is_dir()]
+    cands += [b / path for b in bases]
+    return next((c for c in cands if c.is_file()), cands[0])
 
 
 def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict:
@@ -184,9 +232,13 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
     frames without GT are excluded from ATE and counted), `run_info.json` (`intrinsics`, `gt_mesh`, `keyframes`,
     `timestamps`), `keyframes.json` (fallback), `mesh.ply` and the GT mesh. The reconstructed mesh is culled with
     the ground-truth cameras (every `cfg.cull_every`-th row of `trajectory_gt.txt`, frustum + occlusion); the GT
-    mesh is used as is. Existing keys of `metrics.json` (process metrics: timings, model size, PSNR, ...) are kept;
-    the keys in `RESULT_KEYS` are always written (None when not computable, with the reason in `eval_notes`),
-    together with `protocol` (this evaluation's settings) and `mesh_eval` (culling / ICP details).
+    mesh is used as is, or with `cfg.cull_gt` culled the same way after splitting its triangles to edges of at most
+    `GT_CULL_MAX_EDGE`. A relative `gt_mesh` of an older run is found by `resolve_gt_mesh`. Existing keys of
+    `metrics.json` (process metrics: timings, model size, PSNR, ...) are kept; the keys in `RESULT_KEYS`,
+    `TRAJECTORY_KEYS` and `MESH_KEYS` are always written (None when not computable, with the reason in
+    `eval_notes`), together with `protocol` (this evaluation's settings) and `mesh_eval` (culling / ICP details).
+    A run whose SLAM part did not finish (run_info.json status other than slam_done / complete, or no
+    trajectory.txt) raises DataError and its metrics.json is left as it is.
 
     Args:
         run_dir: the run directory.
@@ -204,14 +256,17 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
     rd = RunDir(run_dir)
     info_path = rd.run_info
     run_info = _read_json(info_path) if info_path.is_file() else {}
+    if not isinstance(run_info, dict):
+        raise DataError(f"{info_path}: expected a JSON object")
     if not info_path.is_file():
         notes.append("run_info.json missing: no keyframes, intrinsics or GT mesh")
+    _check_finished(run_dir, run_info)
     metrics_path = rd.metrics
     existing = _read_json(metrics_path) if metrics_path.is_file() else {}
     if not isinstance(existing, dict):
         raise DataError(f"{metrics_path}: expected a JSON object")
 
-    res: dict[str, Any] = {k: None for k in RESULT_KEYS}
+    res: dict[str, Any] = {k: None for k in (*RESULT_KEYS, *TRAJECTORY_KEYS, *MESH_KEYS)}
 
     # --- trajectory
     est_path, gt_path = rd.trajectory, rd.trajectory_gt
@@ -219,29 +274,26 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
     if gt_path.is_file():
         ts_gt, gt = read_tum(gt_path)
         gt_cams = gt
-    if est_path.is_file():
-        ts_est, est = read_tum(est_path)
-        res["frames"] = int(len(est))
-        if gt_cams is not None:
-            gt_full = _associated_gt(ts_est, ts_gt, gt, cfg.max_time_diff)
-            rows = _keyframe_rows(run_dir, run_info, ts_est, cfg.max_time_diff, notes)
-            res.update(trajectory_metrics(est, gt_full, rows, cfg.align, cfg.rpe_delta))
-            if res["ate_n_used"] == 0:
-                notes.append(f"ATE: no estimated timestamp within {cfg.max_time_diff} s of a GT timestamp")
-            rel_path = rd.trajectory_relative
-            if rel_path.is_file():  # docs/spec.md §7.6: non-keyframes carried along by their keyframe's refinement
-                ts_rel, est_rel = read_tum(rel_path)
-                rel_gt = _associated_gt(ts_rel, ts_gt, gt, cfg.max_time_diff)
-                res["ate_relative_rmse_m"] = trajectory_metrics(est_rel, rel_gt, None, cfg.align, cfg.rpe_delta)[
-                    "ate_rmse_m"]
-        else:
-            notes.append("trajectory_gt.txt missing: no ATE/RPE")
+    ts_est, est = read_tum(est_path)
+    res["frames"] = int(len(est))
+    if gt_cams is not None:
+        gt_full = _associated_gt(ts_est, ts_gt, gt, cfg.max_time_diff)
+        rows = _keyframe_rows(run_dir, run_info, ts_est, cfg.max_time_diff, notes)
+        res.update(trajectory_metrics(est, gt_full, rows, cfg.align, cfg.rpe_delta))
+        if res["ate_n_used"] == 0:
+            notes.append(f"ATE: no estimated timestamp within {cfg.max_time_diff} s of a GT timestamp")
+        rel_path = rd.trajectory_relative
+        if rel_path.is_file():  # docs/spec.md §7.6: non-keyframes carried along by their keyframe's refinement
+            ts_rel, est_rel = read_tum(rel_path)
+            rel_gt = _associated_gt(ts_rel, ts_gt, gt, cfg.max_time_diff)
+            res["ate_relative_rmse_m"] = trajectory_metrics(est_rel, rel_gt, None, cfg.align, cfg.rpe_delta)[
+                "ate_rmse_m"]
     else:
-        notes.append("trajectory.txt missing: no ATE/RPE")
+        notes.append("trajectory_gt.txt missing: no ATE/RPE")
 
     # --- mesh
     rec_path = rd.mesh
-    gt_mesh_path = _resolve(run_dir, run_info.get("gt_mesh"))
+    gt_mesh_path = resolve_gt_mesh(run_dir, run_info)
     mesh_eval: dict[str, Any] = {}
     if not cfg.mesh_metrics:
         notes.append("mesh metrics disabled (mesh_metrics: false)")
@@ -270,11 +322,34 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
     return out
 
 
+def _check_finished(run_dir: Path, run_info: Mapping[str, Any]) -> None:
+    """DataError unless the run finished SLAM: run_info.json status slam_done / complete (when it has a status) and
+    trajectory.txt written. Evaluating a half-done run would replace its metrics with nulls."""
+    rd = RunDir(run_dir)
+    status = run_info.get("status")
+    if status is None and rd.trajectory.is_file():
+        return  # a run directory written by hand or another tool: evaluate what is there
+    if status in FINISHED_STATUSES and rd.trajectory.is_file():
+        return
+    what = f"status {status}" if status is not None else "no run_info.json status"
+    if not rd.trajectory.is_file():
+        what += ", no trajectory.txt"
+    if rd.has_checkpoint():
+        raise DataError(f"{run_dir}: the run is incomplete ({what}): resume it with inrslam run --resume {run_dir}")
+    if rd.holds_run():
+        raise DataError(f"{run_dir}: the run is incomplete ({what}, no checkpoint yet): start it again with "
+                        f"inrslam run --config {rd.config} --out {run_dir} --overwrite")
+    raise DataError(f"{run_dir}: not a finished run ({what}) and no config.yaml to continue it from")
+
+
 def _mesh_eval(rec: trimesh.Trimesh, gt: trimesh.Trimesh, cams: np.ndarray, intr: Intrinsics, cfg: EvalConfig,
                culled_out: Optional[PathLike] = None) -> dict:
     cams = culling_cameras(cams, cfg)
     culled = cull_mesh(rec, cams, intr, every=1, eps=cfg.cull_eps, occlusion=cfg.cull_occlusion)
-    if cfg.cull_gt:
+    gt_split_faces = None
+    if cfg.cull_gt:  # GT triangles split first: visibility is per vertex, GT walls are often two triangles
+        gt = subdivide_to_edge(gt, GT_CULL_MAX_EDGE)
+        gt_split_faces = int(len(gt.faces))
         gt = cull_mesh(gt, cams, intr, every=1, eps=cfg.cull_eps, occlusion=cfg.cull_occlusion)
     if culled_out is not None:
         with atomic_path(culled_out) as tmp:
@@ -284,6 +359,7 @@ def _mesh_eval(rec: trimesh.Trimesh, gt: trimesh.Trimesh, cams: np.ndarray, intr
         "culled_faces": int(len(culled.faces)),
         "cameras_used": int(len(cams)),
         "gt_faces": int(len(gt.faces)),
+        **({"gt_max_edge_m": GT_CULL_MAX_EDGE, "gt_split_faces": gt_split_faces} if cfg.cull_gt else {}),
         "icp_transform": None,
         "icp_info": None,
     }

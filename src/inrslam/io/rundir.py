@@ -111,6 +111,15 @@ class RunDir:
         """Parsed JSON of a file, or None when missing or unreadable."""
         return read_json(self.path(key))
 
+    def corrupt_files(self, keys: tuple[str, ...] = ("run_info", "metrics")) -> list[str]:
+        """File names among `keys` that exist but do not hold a JSON object (truncated, edited, not JSON)."""
+        bad = []
+        for key in keys:
+            path = self.path(key)
+            if path.is_file() and not isinstance(self.read_json(key), dict):
+                bad.append(path.name)
+        return bad
+
     def read_metrics(self) -> dict | None:
         m = self.read_json("metrics")
         return m if isinstance(m, dict) else None

@@ -1,0 +1,359 @@
+"""Fault injection: what the CLI does with relative paths, damaged or half-done run directories, failed sweep runs,
+Ctrl-C and unusable arguments. User-visible behaviour is checked on a real `python -m inrslam.cli` subprocess: one
+line on stderr (no traceback), the exit code, and that nothing already finished is lost (docs/reliability.md).
+
+Runs are tiny: a 6-frame, 96 x 72 built-in room exported to the Replica layout, quick preset, one thread.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+import inrslam
+from inrslam.bench.sweep import run_sweep
+from inrslam.bench.testing import write_fake_run
+from inrslam.cli import main
+from inrslam.data.config import DataConfig
+from inrslam.datasets import open_dataset
+from inrslam.eval import eval_mesh_files, evaluate_run
+from inrslam.eval.run import TRAJECTORY_KEYS
+from inrslam.geometry.intrinsics import Intrinsics
+from inrslam.io.atomic import write_json
+from inrslam.io.rundir import RunDir
+from inrslam.io.trajectory import write_tum
+from inrslam.scenes import SceneConfig, load_scene
+
+SRC = Path(inrslam.__file__).resolve().parents[1]
+TESTS = Path(__file__).resolve().parent
+FRAMES, WIDTH, HEIGHT = 6, 96, 72
+RUN_ARGS = ["--preset", "quick", "--quiet", "threads=1", "seed=3", "slam.init_iters=30", "slam.checkpoint_every=1",
+            "output.tensorboard=false", "eval.heldout_every=0", "eval.n_samples=2000"]
+EXIT_ERROR, EXIT_FAILED_RUNS, EXIT_INTERRUPTED = 2, 1, 130
+
+
+def cli(*args: str, cwd: Path, env: dict | None = None, timeout: float = 240) -> subprocess.CompletedProcess:
+    """`python -m inrslam.cli ARGS` in `cwd` with this tree on the path; output captured as text."""
+    return subprocess.run([sys.executable, "-m", "inrslam.cli", *args], cwd=cwd, env=_env(env), capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def _env(extra: dict | None = None) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(SRC), str(TESTS)])
+    env.update(extra or {})
+    return env
+
+
+def assert_one_line_error(proc, code: int, *needles: str) -> str:
+    """The process exited with `code`, printed exactly one stderr line containing every needle, and no traceback."""
+    err = proc.stderr.strip()
+    assert proc.returncode == code, (proc.returncode, proc.stderr[-3000:])
+    assert "Traceback" not in proc.stderr and len(err.splitlines()) == 1, proc.stderr[-3000:]
+    for n in needles:
+        assert n in err, (n, err)
+    return err
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory) -> Path:
+    """A folder holding `data/room_rep`: the built-in room exported to the Replica layout (with its GT mesh)."""
+    w = tmp_path_factory.mktemp("faults")
+    assert main(["export", "room", "--layout", "replica", "--out", str(w / "data" / "room_rep"),
+                 "--frames", str(FRAMES), "--width", str(WIDTH), "--height", str(HEIGHT)]) == 0
+    (w / "elsewhere").mkdir()
+    return w
+
+
+@pytest.fixture(scope="module")
+def relative_run(work) -> Path:
+    """A finished run started from `work` with relative --data and --out paths."""
+    proc = cli("run", "--data", "data/room_rep", "--out", "o", *RUN_ARGS, cwd=work)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return work / "o"
+
+
+# -- a. relative paths ---------------------------------------------------------------------------------------------
+
+
+def test_relative_data_path_is_recorded_absolute_and_mesh_is_evaluated(work, relative_run):
+    data = work / "data" / "room_rep"
+    cfg = yaml.safe_load((relative_run / "config.yaml").read_text())
+    info = json.loads((relative_run / "run_info.json").read_text())
+    assert cfg["data"]["path"] == str(data)
+    assert info["dataset"]["root"] == str(data) and info["gt_mesh"] == str(data / "mesh.ply")
+    metrics = json.loads((relative_run / "metrics.json").read_text())
+    assert metrics["acc_m"] is not None and metrics["comp_m"] is not None, metrics["eval_notes"]
+
+
+def test_old_run_with_relative_gt_mesh_evaluates_from_another_directory(work, relative_run, tmp_path, monkeypatch,
+                                                                        capsys):
+    """A run made before paths were recorded absolute: config.yaml, run_info.json root and gt_mesh relative to the
+    directory it was started from. `eval` from elsewhere finds the mesh through the data root."""
+    (tmp_path / "data").mkdir()
+    os.symlink(work / "data" / "room_rep", tmp_path / "data" / "room_rep")
+    old = tmp_path / "o"
+    shutil.copytree(relative_run, old)
+    cfg = yaml.safe_load((old / "config.yaml").read_text())
+    cfg["data"]["path"] = "data/room_rep"
+    (old / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    info = json.loads((old / "run_info.json").read_text())
+    info["dataset"]["root"], info["gt_mesh"] = "data/room_rep", "data/room_rep/mesh.ply"
+    write_json(old / "run_info.json", info)
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    assert main(["eval", str(old), "--json"]) == 0
+    metrics = json.loads((old / "metrics.json").read_text())
+    ref = json.loads((relative_run / "metrics.json").read_text())
+    assert metrics["acc_m"] == ref["acc_m"] and metrics["comp_m"] == ref["comp_m"]
+    assert metrics["mesh_eval"]["gt_mesh"] == str(tmp_path / "data" / "room_rep" / "mesh.ply")
+
+
+def test_resume_of_old_run_with_missing_relative_data_is_one_line(work, relative_run, tmp_path):
+    old = tmp_path / "o"
+    shutil.copytree(relative_run, old)
+    cfg = yaml.safe_load((old / "config.yaml").read_text())
+    cfg["data"]["path"] = "data/room_rep"
+    (old / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    before = (old / "metrics.json").read_bytes()
+    proc = cli("run", "--resume", str(old), "--quiet", cwd=work / "elsewhere")
+    assert_one_line_error(proc, EXIT_ERROR, "data.path 'data/room_rep' is relative", "config.yaml")
+    assert (old / "metrics.json").read_bytes() == before
+
+
+# -- g. Ctrl-C ---------------------------------------------------------------------------------------------------
+
+
+def test_ctrl_c_in_run_says_how_to_resume_and_resume_completes(work, relative_run, monkeypatch):
+    """SIGINT after the first checkpoint: exit 130 with the resume command; resuming from another directory (the
+    data path is absolute in config.yaml) ends with the trajectory and Acc of the uninterrupted run."""
+    out = work / "g"
+    proc = subprocess.Popen([sys.executable, "-m", "inrslam.cli", "run", "--data", "data/room_rep", "--out", "g",
+                             *RUN_ARGS], cwd=work, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    deadline = time.time() + 240
+    while time.time() < deadline and proc.poll() is None and not RunDir(out).has_checkpoint():
+        time.sleep(0.02)
+    assert proc.poll() is None, f"run ended before it could be interrupted: {proc.stderr.read()[-2000:]}"
+    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole foreground group
+    stdout, stderr = proc.communicate(timeout=120)
+    done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    assert_one_line_error(done, EXIT_INTERRUPTED, "interrupted", "inrslam run --resume g")
+    assert RunDir(out).has_checkpoint() and not (out / "metrics.json").exists()
+    monkeypatch.chdir(work / "elsewhere")
+    assert main(["run", "--resume", str(out), "--quiet"]) == 0
+    assert (out / "trajectory.txt").read_text() == (relative_run / "trajectory.txt").read_text()
+    m, ref = (json.loads((d / "metrics.json").read_text()) for d in (out, relative_run))
+    assert m["acc_m"] == ref["acc_m"] and json.loads((out / "run_info.json").read_text())["status"] == "complete"
+
+
+def test_ctrl_c_in_bench_keeps_finished_runs_and_says_how_to_resume(tmp_path):
+    spec = _spec(tmp_path)
+    out = tmp_path / "sweep"
+    proc = subprocess.Popen([sys.executable, "-m", "inrslam.cli", "bench", str(spec), "--out", str(out)],
+                            cwd=tmp_path, env=_env({"INRSLAM_BENCH_RUN_FN": "fault_runs:hang_other_seeds"}),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    hanging = out / "room__dense__direct__quick__s1" / "started"
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None and not hanging.exists():
+        time.sleep(0.02)
+    assert proc.poll() is None, proc.stderr.read()[-2000:]
+    time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    assert_one_line_error(done, EXIT_INTERRUPTED, "interrupted", f"inrslam bench {spec} --out {out}")
+    assert RunDir(out / "room__dense__direct__quick__s0").is_complete()
+    assert json.loads((out / "sweep_status.json").read_text())["state"] == "interrupted"
+    res = run_sweep(spec, out, run_fn="inrslam.bench.testing:fake_run", quiet=True, report=False)
+    assert res.count("skipped") == 1 and res.count("complete") == 1 and not res.failed
+
+
+# -- e. failed sweep runs ------------------------------------------------------------------------------------------
+
+
+def _spec(tmp_path: Path) -> Path:
+    spec = tmp_path / "two.yaml"
+    spec.write_text("encodings: [dense]\nrenders: [direct]\nscenes: [builtin:room]\npresets: [quick]\n"
+                    "seeds: [0, 1]\n")
+    return spec
+
+
+def test_bench_with_a_failed_run_goes_on_and_exits_nonzero(tmp_path):
+    out = tmp_path / "sweep"
+    proc = cli("bench", str(_spec(tmp_path)), "--out", str(out), cwd=tmp_path,
+               env={"INRSLAM_BENCH_RUN_FN": "fault_runs:fail_other_seeds"})
+    assert_one_line_error(proc, EXIT_FAILED_RUNS, "1 of 2 runs failed", "error.txt")
+    assert RunDir(out / "room__dense__direct__quick__s0").is_complete()
+    assert "injected failure" in (out / "room__dense__direct__quick__s1" / "error.txt").read_text()
+    assert (out / "report" / "index.html").is_file()
+
+
+# -- c. eval: stale families, incomplete runs --------------------------------------------------------------------
+
+
+def test_eval_without_gt_trajectory_leaves_no_stale_trajectory_metric(tmp_path):
+    rd = write_fake_run(tmp_path / "run", "hash", "direct", frames=12)
+    first = evaluate_run(rd)
+    assert first["ate_n_used"] == 12 and first["ate_std_m"] is not None and first["rpe_n_pairs"] == 11
+    (rd / "trajectory_gt.txt").unlink()
+    second = evaluate_run(rd)
+    on_disk = json.loads((rd / "metrics.json").read_text())
+    for key in TRAJECTORY_KEYS:
+        assert second[key] is None and on_disk[key] is None, key
+    assert on_disk["frames"] == 12 and on_disk["track_ms_per_frame"] == first["track_ms_per_frame"]
+    assert any("trajectory_gt.txt" in n for n in on_disk["eval_notes"])
+
+
+@pytest.mark.parametrize("damage", ["running", "no_trajectory"])
+def test_eval_of_an_incomplete_run_is_one_line_and_writes_nothing(tmp_path, damage):
+    rd = write_fake_run(tmp_path / "run", "hash", "direct", status="running" if damage == "running" else "complete")
+    (rd / "checkpoints").mkdir()
+    (rd / "checkpoints" / "latest.pt").write_bytes(b"checkpoint")
+    if damage == "no_trajectory":
+        (rd / "trajectory.txt").unlink()
+    before = (rd / "metrics.json").read_bytes()
+    proc = cli("eval", str(rd), cwd=tmp_path)
+    want = "status running" if damage == "running" else "no trajectory.txt"
+    assert_one_line_error(proc, EXIT_ERROR, f"{rd}: the run is incomplete (", want,
+                          f"resume it with inrslam run --resume {rd}")
+    assert (rd / "metrics.json").read_bytes() == before
+
+
+# -- d. report ---------------------------------------------------------------------------------------------------
+
+
+def test_report_shows_corrupt_json_files_and_does_not_count_them(tmp_path, capsys):
+    runs = tmp_path / "runs"
+    good = write_fake_run(runs / "good", "dense", "direct")
+    bad_metrics = write_fake_run(runs / "bad_metrics", "hash", "direct")
+    bad_info = write_fake_run(runs / "bad_info", "hash", "density")
+    for path in (bad_metrics / "metrics.json", bad_info / "run_info.json"):
+        text = path.read_text()
+        path.write_text(text[: len(text) // 2])  # truncated: invalid JSON
+    assert main(["report", str(runs)]) == 0
+    printed = capsys.readouterr().out
+    assert "3 runs: " in printed and "1 complete" in printed and "1 corrupt: metrics.json" in printed
+    status = {line.split(",")[0]: line.split(",")[6]
+              for line in (runs / "report" / "runs.csv").read_text().splitlines()[1:]}
+    assert status == {"good": "complete", "bad_metrics": "corrupt: metrics.json",
+                      "bad_info": "corrupt: run_info.json"}
+    board = (runs / "report" / "leaderboard.md").read_text()
+    assert "(1 runs," in board and board.count("| SDF(direct) |") == 1
+    html = (runs / "report" / "index.html").read_text()
+    assert "corrupt: metrics.json" in html and "corrupt: run_info.json" in html
+    assert good.name in (runs / "report" / "runs.csv").read_text()
+
+
+def test_report_on_a_missing_folder_fails_and_creates_nothing(tmp_path):
+    proc = cli("report", str(tmp_path / "nope"), cwd=tmp_path)
+    assert_one_line_error(proc, EXIT_ERROR, str(tmp_path / "nope"), "does not exist")
+    assert not (tmp_path / "nope").exists()
+
+
+# -- b. --cull-gt with large GT triangles ------------------------------------------------------------------------
+
+
+def _grid_wall(size: float, n: int, z: float) -> trimesh.Trimesh:
+    """size x size m square at height z, centred on the z axis, as n x n cells of two triangles."""
+    xs = np.linspace(-size / 2, size / 2, n + 1)
+    X, Y = np.meshgrid(xs, xs, indexing="ij")
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    return trimesh.Trimesh(np.stack([X.ravel(), Y.ravel(), np.full(X.size, z)], 1), faces, process=False)
+
+
+def test_cull_gt_keeps_the_seen_part_of_a_two_triangle_wall(tmp_path):
+    """A 4 m x 4 m wall at z = 2 as two triangles; the camera at the origin sees its central 2.56 m x 2.56 m and
+    none of its corners. The reconstruction is that seen part, finely meshed: with --cull-gt the GT must keep the
+    seen part (Acc / Comp ~ 0), not lose the whole wall."""
+    intr = Intrinsics(fx=50.0, fy=50.0, cx=31.5, cy=31.5, width=64, height=64)
+    half = 2.0 * 31.5 / 50.0  # half-width of the view at z = 2
+    wall = trimesh.Trimesh([[-2, -2, 2], [2, -2, 2], [2, 2, 2], [-2, 2, 2]], [[0, 1, 2], [0, 2, 3]], process=False)
+    wall.export(tmp_path / "gt.ply")
+    _grid_wall(2 * half, 40, z=2.0).export(tmp_path / "rec.ply")
+    write_tum(tmp_path / "cams.txt", np.zeros(1), np.eye(4)[None])
+    kw = dict(cameras_path=tmp_path / "cams.txt", intrinsics=intr, every=1, n_samples=20_000)
+    culled = eval_mesh_files(tmp_path / "rec.ply", tmp_path / "gt.ply", cull_gt=True, **kw)
+    assert culled["comp_m"] < 0.01 and culled["acc_m"] < 0.01 and culled["comp_ratio"] > 0.95
+    assert culled["mesh_eval"]["gt_split_faces"] > culled["mesh_eval"]["gt_faces"] > 2
+    plain = eval_mesh_files(tmp_path / "rec.ply", tmp_path / "gt.ply", **kw)
+    assert plain["comp_ratio"] < 0.5  # unculled, the unseen 60 % of the wall counts as missed
+
+
+# -- f. export ---------------------------------------------------------------------------------------------------
+
+
+def test_export_writes_a_readable_tum_folder(tmp_path):
+    out = tmp_path / "room_tum"
+    proc = cli("export", "room", "--layout", "tum", "--out", str(out), "--frames", "3", "--width", "48",
+               "--height", "36", cwd=tmp_path)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    ds = open_dataset(DataConfig(path=str(out)))
+    scene = load_scene("room", SceneConfig(frames=3, width=48, height=36))
+    assert ds.name == "tum" and len(ds) == 3 and (out / "mesh.ply").is_file()
+    for i in range(3):
+        a, b = ds[i], scene[i]
+        assert np.allclose(a.rgb, b.rgb, atol=1 / 255 + 1e-6) and np.allclose(a.depth, b.depth, atol=2e-4)
+        assert np.allclose(a.c2w, b.c2w, atol=1e-6)
+    again = cli("export", "room", "--layout", "tum", "--out", str(out), cwd=tmp_path)
+    assert_one_line_error(again, EXIT_ERROR, str(out), "not empty")
+
+
+# -- h. unusable arguments ---------------------------------------------------------------------------------------
+
+
+def _read_only_dir(tmp_path: Path) -> Path:
+    d = tmp_path / "ro"
+    d.mkdir()
+    d.chmod(0o555)
+    try:
+        (d / "probe").write_text("")
+    except OSError:
+        return d
+    (d / "probe").unlink()  # running as root: permission bits do not stop writes
+    if _unwritable(Path("/sys")):  # read-only to root too in most containers
+        return Path("/sys")
+    pytest.skip("no read-only directory available to this user")
+
+
+def _unwritable(d: Path) -> bool:
+    try:
+        (d / ".inrslam-probe").write_text("")
+    except OSError:
+        return True
+    (d / ".inrslam-probe").unlink()
+    return False
+
+
+@pytest.mark.parametrize("case", ["out_is_file", "out_read_only", "device_tpu"])
+def test_unusable_run_arguments_are_one_line_errors(tmp_path, case):
+    args = ["run", "--preset", "quick", "--quiet"]
+    if case == "out_is_file":
+        (tmp_path / "f").write_text("x")
+        args += ["--out", str(tmp_path / "f")]
+        needles = [str(tmp_path / "f"), "not a directory"]
+    elif case == "out_read_only":
+        ro = _read_only_dir(tmp_path)
+        args += ["--out", str(ro / "run")]
+        needles = [str(ro / "run"), "cannot write"]
+    else:
+        args += ["--out", str(tmp_path / "run"), "--device", "tpu"]
+        needles = ["'device'", "'tpu'", "cuda:N"]
+    proc = cli(*args, cwd=tmp_path)
+    assert_one_line_error(proc, EXIT_ERROR, *needles)
+    assert not (tmp_path / "run").exists()
+    if case == "out_is_file":
+        assert (tmp_path / "f").read_text() == "x"
