@@ -12,8 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
-from inrslam.bench.leaderboard import (COLUMNS, ENCODING_LABELS, Column, RunRecord, Row, _order, encoding_label,
-                                       render_label)
+from inrslam.bench.leaderboard import (
+    COLUMNS,
+    ENCODING_LABELS,
+    Column,
+    Row,
+    RunRecord,
+    _order,
+    encoding_label,
+    render_label,
+)
 from inrslam.bench.spec import sanitize
 from inrslam.errors import DataError
 from inrslam.eval.trajectory import associate, ate

@@ -19,8 +19,17 @@ import io
 import os
 from pathlib import Path
 
-from inrslam.bench.leaderboard import (COLUMNS, RunRecord, aggregate, by_scene, collect_runs, to_csv, to_html,
-                                       to_latex, to_markdown)
+from inrslam.bench.leaderboard import (
+    COLUMNS,
+    RunRecord,
+    aggregate,
+    by_scene,
+    collect_runs,
+    to_csv,
+    to_html,
+    to_latex,
+    to_markdown,
+)
 from inrslam.bench.plots import plot_ate_over_frames, plot_bars, plot_tradeoff
 from inrslam.bench.spec import sanitize
 from inrslam.bench.sweep import STATUS_FILE

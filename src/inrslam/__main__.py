@@ -1,0 +1,7 @@
+"""`python -m inrslam ...` = the `inrslam` command."""
+
+import sys
+
+from inrslam.cli import main
+
+sys.exit(main())
