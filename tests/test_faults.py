@@ -357,3 +357,123 @@ def test_unusable_run_arguments_are_one_line_errors(tmp_path, case):
     assert not (tmp_path / "run").exists()
     if case == "out_is_file":
         assert (tmp_path / "f").read_text() == "x"
+
+
+# -- numeric keys, intrinsics, timestamps, frame size: refused before any work -------------------------------------
+
+
+@pytest.mark.parametrize("override,needle", [
+    ("mesh.resolution=0", "'mesh.resolution' in command-line overrides: expected a number >= 0.001"),
+    ("slam.map_every=0", "'slam.map_every' in command-line overrides: expected an integer >= 1"),
+    ("slam.track_pixels=0", "'slam.track_pixels'"),
+    ("slam.track_iters=-1", "'slam.track_iters'"),
+    ("slam.map_lr=-0.01", "'slam.map_lr'"),
+    ("sampling.n_free=-1", "'sampling.n_free'"),
+    ("sampling.n_free=0 sampling.n_surface=0", "n_free + n_surface >= 1"),
+    ("render.density.beta=.nan", "expected a finite number"),
+    ("data.builtin.width=1", "'data.builtin.width'"),
+])
+def test_bad_numeric_keys_fail_at_load_time(tmp_path, override, needle):
+    t0 = time.perf_counter()
+    proc = cli("run", "--out", str(tmp_path / "o"), *override.split(), "--quiet", cwd=tmp_path)
+    assert_one_line_error(proc, EXIT_ERROR, needle)
+    assert not (tmp_path / "o").exists()  # nothing started
+    assert time.perf_counter() - t0 < 60  # refused at load, not after SLAM (a generous bound for a busy machine)
+
+
+@pytest.mark.parametrize("intrinsics,needle", [
+    ("[0,500,48,36]", "fx=0.0"), ("[-300,300,48,36]", "fx=-300.0"), ("[.nan,300,48,36]", "finite number")])
+def test_bad_intrinsics_are_one_line_errors(work, tmp_path, intrinsics, needle):
+    proc = cli("run", "--data", str(work / "data" / "room_rep"), "--out", str(tmp_path / "o"), *RUN_ARGS,
+               f"data.intrinsics={intrinsics}", cwd=tmp_path)
+    assert_one_line_error(proc, EXIT_ERROR, needle)
+
+
+def test_nan_in_cam_params_names_the_file(work, tmp_path):
+    data = tmp_path / "room_rep"
+    shutil.copytree(work / "data" / "room_rep", data, symlinks=True)
+    cam = data / "cam_params.json"
+    params = json.loads(cam.read_text())
+    params["camera"]["fx"] = float("nan")
+    cam.write_text(json.dumps(params))  # json writes NaN, which Python's reader accepts
+    proc = cli("run", "--data", str(data), "--out", str(tmp_path / "o"), *RUN_ARGS, cwd=tmp_path)
+    assert_one_line_error(proc, EXIT_ERROR, str(cam), "fx not a finite number")
+
+
+def test_nan_timestamp_in_tum_rgb_list_names_file_and_line(tmp_path):
+    from inrslam.errors import DataError
+
+    out = tmp_path / "tum"
+    assert main(["export", "room", "--layout", "tum", "--out", str(out), "--frames", "3", "--width", "32",
+                 "--height", "24"]) == 0
+    lines = (out / "rgb.txt").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln and not ln.startswith("#"))
+    lines[k + 1] = "nan " + lines[k + 1].split()[1]
+    (out / "rgb.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=rf"rgb.txt:{k + 2}: timestamp 'nan' is not a finite number"):
+        open_dataset(DataConfig(path=str(out)))
+
+
+def test_tiny_images_are_refused_before_slam(tmp_path):
+    from inrslam.errors import DataError
+
+    out = tmp_path / "tiny"
+    assert main(["export", "room", "--layout", "replica", "--out", str(out), "--frames", "2", "--width", "8",
+                 "--height", "6"]) == 0
+    from inrslam.config import load_config
+    from inrslam.slam.system import SlamSystem
+
+    cfg = load_config(preset="quick", overrides=[f"data.path={out}"])
+    with pytest.raises(DataError, match="frames are 8x6 px; the SLAM loop needs at least 16x16"):
+        SlamSystem(cfg, open_dataset(cfg.data))
+
+
+# -- checkpoints and post-SLAM steps ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("damage,needle", [
+    ("empty", "the checkpoint is empty"), ("truncate", "truncated or corrupt"), ("flip", "corrupt")])
+def test_resume_from_a_damaged_checkpoint_is_one_line(work, relative_run, tmp_path, damage, needle):
+    run = tmp_path / "o"
+    shutil.copytree(relative_run, run)
+    ck = RunDir(run).checkpoint
+    raw = bytearray(ck.read_bytes())
+    if damage == "empty":
+        raw = bytearray()
+    elif damage == "truncate":
+        raw = raw[: len(raw) // 3]
+    else:  # flip a bit in the middle of the file: inside the stored tensors, which most of it holds
+        raw[len(raw) // 2] ^= 0x01
+    ck.write_bytes(bytes(raw))
+    before = (run / "trajectory.txt").read_bytes()
+    proc = cli("run", "--resume", str(run), "--quiet", cwd=tmp_path)
+    assert_one_line_error(proc, EXIT_ERROR, str(ck), needle, "--overwrite")
+    assert (run / "trajectory.txt").read_bytes() == before
+
+
+def test_a_failing_post_slam_step_still_writes_the_rest(work, tmp_path, monkeypatch):
+    """Evaluation raises: trajectories, mesh and process metrics are written, the error is one RunError naming the
+    step, the traceback is in log.jsonl, and `inrslam eval` afterwards completes the metrics."""
+    import inrslam.eval.run as ev_run
+    from inrslam.config import load_config
+    from inrslam.errors import RunError
+    from inrslam.runner import run_slam
+
+    def broken(*a, **k):
+        raise MemoryError("simulated")
+
+    monkeypatch.setattr(ev_run, "evaluate_run", broken)
+    cfg = load_config(preset="quick", overrides=[f"data.path={work / 'data' / 'room_rep'}", "data.max_frames=3",
+                                                 "slam.init_iters=30", "output.tensorboard=false",
+                                                 "eval.heldout_every=0", "eval.n_samples=2000", "threads=1"])
+    out = tmp_path / "o"
+    with pytest.raises(RunError, match=r"SLAM finished .* evaluation failed \(MemoryError: simulated\).*inrslam eval"):
+        run_slam(cfg, out)
+    rd = RunDir(out)
+    assert rd.trajectory.is_file() and rd.mesh.is_file() and rd.read_metrics()["frames"] == 3
+    assert rd.read_run_info()["status"] == "slam_done"
+    errors = [json.loads(ln) for ln in rd.log.read_text().splitlines() if '"type": "error"' in ln]
+    assert errors[0]["step"] == "evaluation" and "MemoryError" in errors[0]["traceback"]
+    monkeypatch.undo()
+    assert main(["eval", str(out), "--json"]) == 0
+    assert rd.read_metrics()["ate_rmse_m"] is not None

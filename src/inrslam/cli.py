@@ -299,6 +299,10 @@ def _print_metrics(console, run_dir: Path) -> None:
 
     metrics = RunDir(run_dir).read_metrics() or {}
     console.print(format_table(metrics))
+    if metrics.get("lost_frames"):
+        console.print(f"[yellow]warning:[/yellow] tracking was lost on {metrics['lost_frames']} frame(s) "
+                      f"('tracking_lost' in log.jsonl): poses after them are unreliable; try a smaller data.stride "
+                      f"or slam.lost.recover=true")
     console.print(f"Outputs in [bold]{run_dir}[/bold]: trajectory.txt, mesh.ply, metrics.json, log.jsonl, config.yaml")
 
 

@@ -15,3 +15,7 @@ class ConfigError(InrslamError):
 
 class RunError(InrslamError):
     """A run directory that cannot be written or resumed (corrupt checkpoint, full disk, another run's files)."""
+
+
+class TrackingLost(InrslamError):
+    """Tracking stayed lost for `slam.lost.stop_after` frames (the run stops; finished work is checkpointed)."""

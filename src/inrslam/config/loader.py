@@ -18,6 +18,7 @@ from typing import Any, Union
 
 import yaml
 
+from inrslam.config.ranges import check_ranges
 from inrslam.errors import ConfigError
 
 PRESET_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -205,14 +206,18 @@ def _convert(tp: Any, value: Any, key: str, sources: dict) -> Any:
     raise ConfigError(f"config key {key!r}: unsupported type {tp!r} in the schema")
 
 
-def build_config(cls: type, layers: list[tuple[dict, str]]):
-    """Validate each (dict, source) layer against `cls`, merge in order and convert to a `cls` instance."""
+def build_config(cls: type, layers: list[tuple[dict, str]], check: Any = None):
+    """Validate each (dict, source) layer against `cls`, merge in order and convert to a `cls` instance;
+    `check(cfg, sources)` then validates values (sources: dotted key -> the layer that set it)."""
     merged: dict = {}
     sources: dict[str, str] = {}
     for data, source in layers:
         _validate_keys(cls, data, source)
         merged = _merge(merged, data, sources, source)
-    return _convert(cls, merged, "", sources)
+    cfg = _convert(cls, merged, "", sources)
+    if check is not None:
+        check(cfg, sources)
+    return cfg
 
 
 def _is_preset(source: str) -> bool:
@@ -264,7 +269,7 @@ def load_config(
                 renamed[key] = layer_renamed[key]
             else:
                 renamed.pop(key, None)
-    cfg = build_config(RunConfig, normalised)
+    cfg = build_config(RunConfig, normalised, check=check_ranges)
     if check_variants and user_keys:
         baseline = build_config(RunConfig, [n for n, (_, _, by_user) in zip(normalised, layers) if not by_user])
         check_variant_keys(cfg, baseline, user_keys, renamed)

@@ -144,9 +144,10 @@ class FolderDataset:
             vals = list(self.cfg.intrinsics)
             if len(vals) != 4:
                 raise ConfigError(f"data.intrinsics: expected [fx, fy, cx, cy], got {vals}")
-            return Intrinsics(*(float(v) for v in vals), width, height)
+            return Intrinsics(*(float(v) for v in vals), width, height).checked("data.intrinsics")
         if default is None:
             raise DataError(f"{self.root}: no intrinsics found and data.intrinsics not set")
+        default.checked(f"{self.root}: the {self.name} camera parameters")
         if self.cfg.faithful_intrinsics and self.floors_intrinsics:
             fl = math.floor
             d = default
@@ -232,6 +233,9 @@ def read_camera_json(path: Path, section: Optional[str] = None) -> dict[str, flo
         if section is not None:
             data = data[section]
         out = {k: float(v) for k, v in data.items() if isinstance(v, (int, float))}
+        bad = [k for k, v in out.items() if not math.isfinite(v)]
+        if bad:
+            raise ValueError(f"{', '.join(bad)} not a finite number")
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
         raise DataError(f"{path}: cannot read camera parameters ({type(e).__name__}: {e})") from None
     missing = [k for k in ("fx", "fy", "cx", "cy") if k not in out]

@@ -45,9 +45,12 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
         if len(parts) != 2:
             raise DataError(f"{path}:{n}: expected 'timestamp filename', got {s[:80]!r}")
         try:
-            ts.append(float(parts[0]))
+            t = float(parts[0])
         except ValueError:
             raise DataError(f"{path}:{n}: non-numeric timestamp {parts[0]!r}") from None
+        if not np.isfinite(t):
+            raise DataError(f"{path}:{n}: timestamp {parts[0]!r} is not a finite number of seconds")
+        ts.append(t)
         names.append(parts[1])
     if not ts:
         raise DataError(f"{path}: no entries found (expected lines 'timestamp filename')")
@@ -107,6 +110,7 @@ class TUMDataset(FolderDataset):
         if max_dt_d < 0 or max_dt_p < 0:
             raise ConfigError("data.tum.max_dt_depth / data.tum.max_dt_pose: must be >= 0 seconds")
         rgb_list, depth_list = self.root / "rgb.txt", self.root / "depth.txt"
+        self.gt_mesh = first_existing([self.root / "mesh.ply"])  # our TUM exports carry one (TUM itself has none)
         t_rgb, rgb_names = read_file_list(rgb_list)
         t_d, d_names = read_file_list(depth_list)
         order_r, order_d = np.argsort(t_rgb, kind="stable"), np.argsort(t_d, kind="stable")

@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 from inrslam.config.loader import dump_config, load_config
-from inrslam.errors import ConfigError
+from inrslam.errors import ConfigError, RunError
 from inrslam.io.atomic import write_text
 from inrslam.io.rundir import RunDir
 from inrslam.runner.writer import RunWriter
@@ -81,7 +81,8 @@ def _recorded_threads(run_dir: Path) -> int | None:
 
 def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
     """Held-out renders with the final map and estimated poses, the process metrics written with them, then every
-    result metric (docs/metrics.md)."""
+    result metric (docs/metrics.md). A step that fails does not stop the others: what can be written is, the
+    failure goes to log.jsonl with its traceback, and the run ends with one RunError naming every failed step."""
     from inrslam.eval.heldout import heldout_metrics
     from inrslam.eval.run import evaluate_run
 
@@ -90,11 +91,16 @@ def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
     if ev.enabled and ev.heldout_every:
         # frames between keyframes (offset by half the mapping period), rendered without jitter
         render = lambda c2w, intr: system.model.render_image(c2w, intr, n_coarse=ev.heldout_samples)
-        metrics.update(heldout_metrics(render, system.dataset, system.est, ev.heldout_every, ev.heldout_max,
-                                       offset=system.cfg.slam.map_every // 2))
+        with writer.step("held-out renders"):
+            metrics.update(heldout_metrics(render, system.dataset, system.est, ev.heldout_every, ev.heldout_max,
+                                           offset=system.cfg.slam.map_every // 2))
     rd.write_metrics(metrics)
     writer.write_run_info("slam_done")
     if ev.enabled:
-        evaluate_run(rd.root, ev)
+        with writer.step("evaluation"):
+            evaluate_run(rd.root, ev)
+    if writer.failures:
+        raise RunError(f"{rd.root}: SLAM finished and its outputs are written, but {'; '.join(writer.failures)} "
+                       f"(traceback in log.jsonl); after fixing it, evaluate with: inrslam eval {rd.root}")
     writer.write_run_info("complete")
     return rd.root

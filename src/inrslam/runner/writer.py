@@ -12,8 +12,10 @@ import math
 import platform
 import resource
 import time
+import traceback
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import torch
@@ -45,6 +47,7 @@ class RunWriter:
         self.wall_s_before = 0.0  # wall time of earlier (interrupted) segments of this run
         self.peak_mb_before = 0.0  # peak memory of earlier segments
         self._t_start = time.perf_counter()
+        self.failures: list[str] = []  # post-SLAM steps that failed (see `step`)
 
     # -- start ---------------------------------------------------------------------------------------------------
     def start(self, resume: bool) -> None:
@@ -169,6 +172,16 @@ class RunWriter:
         }
         write_json(self.rd.run_info, info)
 
+    @contextmanager
+    def step(self, name: str) -> Iterator[None]:
+        """Run a post-SLAM step; if it raises, log the error with its traceback and carry on with the next one."""
+        try:
+            yield
+        except Exception as e:  # any failure: the remaining steps still write what they can
+            self.failures.append(f"{name} failed ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})")
+            self.log([{"type": "error", "step": name, "error": f"{type(e).__name__}: {e}",
+                       "traceback": traceback.format_exc()}])
+
     # -- end -------------------------------------------------------------------------------------------------------
     def finish(self) -> dict:
         """Final checkpoint, trajectories, keyframes.json and mesh.ply; returns the process metrics (the caller
@@ -176,8 +189,6 @@ class RunWriter:
         self.checkpoint()
         wall_s = self.wall_s()
         rd = self.rd
-        if self.cfg.mesh.enabled:  # first: an empty mesh is an event the metrics count
-            self.write_mesh(self.system.mesh(), rd.mesh)
         res = self.system.result()
         write_tum(rd.trajectory, res.timestamps, res.est, header="inrslam estimated c2w (OpenCV axes)")
         write_tum(rd.trajectory_relative, res.timestamps, res.relative,
@@ -185,6 +196,10 @@ class RunWriter:
         if np.isfinite(res.gt).all(axis=(1, 2)).any():
             write_tum(rd.trajectory_gt, res.timestamps, res.gt, header="ground-truth c2w (OpenCV axes)")
         write_json(rd.keyframes, {"keyframes": res.keyframes})
+        if self.cfg.mesh.enabled:
+            with self.step("mesh extraction"):
+                self.write_mesh(self.system.mesh(), rd.mesh)
+        res = self.system.result()  # again: an empty mesh is an event the metrics count
         if self.tb is not None:
             self.tb.close()
             self.tb = None
@@ -195,7 +210,7 @@ class RunWriter:
 # key order of the process metrics in metrics.json (docs/metrics.md)
 METRIC_ORDER = ("frames", "track_ms_per_frame", "map_ms_per_call", "init_ms", "wall_time_s", "model_size_mb",
                 "model_size_with_optimizer_mb", "peak_memory_mb", "psnr_process_db", "depth_l1_process_m",
-                "fallbacks", "encoding", "render")
+                "fallbacks", "lost_frames", "encoding", "render")
 
 
 def _absolute(p: Any) -> str:

@@ -70,6 +70,17 @@ class SdfTrackConfig:
 
 
 @dataclass
+class LostConfig:
+    """Lost-tracking detection and recovery (rendered tracking only; docs/reliability.md)."""
+
+    factor: float = 5.0  # a frame is lost when its tracking loss exceeds factor x the median of recent frames
+    window: int = 20  # recent frames whose median loss is the running level (init's final loss seeds it)
+    recover: bool = False  # re-track a lost frame from GICP onto the previous frame and from the previous pose
+    recover_max_corr: float = 0.3  # metres, GICP correspondence distance of the recovery (wide: large motion)
+    stop_after: int = 0  # stop the run after this many consecutive lost frames (0 = never: log and go on)
+
+
+@dataclass
 class SlamConfig:
     """Tracking, mapping and keyframe settings."""
 
@@ -87,6 +98,7 @@ class SlamConfig:
     init: PoseInit = PoseInit.CONST_VELOCITY  # tracking's starting pose: prediction, or GICP onto the previous frame
     gicp: GicpConfig = field(default_factory=GicpConfig)  # settings of init = gicp
     sdf_track: SdfTrackConfig = field(default_factory=SdfTrackConfig)  # point-to-surface refinement (before Adam)
+    lost: LostConfig = field(default_factory=LostConfig)  # lost-tracking detection / recovery
     map_every: int = 5  # mapping + keyframe every N frames
     map_iters: int = 20  # mapping iterations per call
     map_pixels: int = 2048  # rays per mapping iteration drawn from the keyframe store

@@ -17,7 +17,7 @@ from torch import Tensor
 from inrslam.slam.keyframes import KeyframeStore
 
 # fields a checkpoint from an older version may lack, with how to fill them in
-_OPTIONAL = {"rel", "rel_kf", "gicp_kfs"}
+_OPTIONAL = {"rel", "rel_kf", "gicp_kfs", "track_losses", "lost_run"}
 
 
 @dataclass(eq=False)
@@ -36,6 +36,8 @@ class SlamState:
         proc_psnr, proc_depth_l1: per-batch PSNR (dB) and depth L1 (m) seen while mapping.
         events: fallbacks and other exceptional events, `{"frame": i, "event": str}`.
         gicp_kfs: GICP keyframes (slam.gicp.target keyframe / local_map); the last is the current target.
+        track_losses: recent rendered-tracking losses of frames not lost (slam.lost.window; init's final first);
+        lost_run: consecutive lost frames up to now.
     """
 
     model: torch.nn.Module
@@ -55,6 +57,8 @@ class SlamState:
     proc_depth_l1: list[float] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
     gicp_kfs: list[int] = field(default_factory=lambda: [0])
+    track_losses: list[float] = field(default_factory=list)
+    lost_run: int = 0
 
     @classmethod
     def fresh(cls, model: torch.nn.Module, optimizers: dict, store: KeyframeStore, generator: torch.Generator,

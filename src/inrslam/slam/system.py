@@ -4,6 +4,7 @@ frame and writes the run directory, the log and the checkpoints."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -14,7 +15,7 @@ import torch
 import trimesh
 
 from inrslam.data.frame import Frame, RGBDDataset
-from inrslam.errors import ConfigError
+from inrslam.errors import ConfigError, DataError, TrackingLost
 from inrslam.slam.config import GicpConfig, GicpTarget, MeshConfig, PoseInit, SlamConfig
 from inrslam.slam.frame_tensors import FrameTensors
 from inrslam.slam.keyframes import KeyframeStore
@@ -25,7 +26,10 @@ from inrslam.slam.poses import constant_velocity, relative_trajectory
 from inrslam.slam.registration import PreparedCloud, depth_points, moved_beyond, prepare_depth, register
 from inrslam.slam.sdf_tracking import align_to_sdf
 from inrslam.slam.state import SlamState
-from inrslam.slam.tracking import track_frame
+from inrslam.slam.tracking import TrackResult, track_frame
+
+Rays = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # dirs_cam (R, 3), rgb (R, 3), depth (R,) metres
+MIN_IMAGE_SIZE = 16  # pixels per side (held-out SSIM uses an 11-px window; tracking keeps a border)
 
 # (frame index, n_frames, info) -> None, called after every frame; info: see `SlamSystem.progress_info`
 Progress = Callable[[int, int, dict], None]
@@ -82,6 +86,10 @@ class SlamSystem:
         self.n_frames = len(dataset)
         if self.n_frames == 0:
             raise ConfigError(f"dataset {getattr(dataset, 'root', '?')} has no frames")
+        intr = dataset.intrinsics
+        if min(intr.width, intr.height) < MIN_IMAGE_SIZE:
+            raise DataError(f"{getattr(dataset, 'root', 'dataset')}: frames are {intr.width}x{intr.height} px; the "
+                            f"SLAM loop needs at least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE}")
         self.bounds = np.asarray(dataset.bounds, dtype=np.float64)
         self.model = SceneModel(cfg, self.bounds).to(self.device)
         self.state = SlamState.fresh(self.model, self.model.make_optimizers(cfg.slam.map_lr),
@@ -154,6 +162,8 @@ class SlamSystem:
                               lambda n: (c2w0,) + ft.sample(n, self.generator), cfg.init_iters, cfg.init_pixels,
                               self.generator)
             self.state.init_ms = (time.perf_counter() - t0) * 1e3
+            if hist and math.isfinite(hist[-1]):
+                self.state.track_losses = [hist[-1]]  # seeds the running loss level of lost-tracking detection
             self._log({"type": "init", "frame": 0, "iters": len(hist), "loss_first": hist[0] if hist else None,
                        "loss_last": hist[-1] if hist else None, "init_ms": self.state.init_ms})
             self._add_keyframe(0, ft)
@@ -172,8 +182,10 @@ class SlamSystem:
             if cfg.sdf_track.iters > 0 and (not cfg.sdf_track.only_on_init_failure or "init_fallback" in extra):
                 pred = self._sdf_refine(ft, pred, extra)
             if cfg.track_iters > 0 and (not cfg.track_only_on_init_failure or "init_fallback" in extra):
-                dirs, rgb, depth = ft.sample(cfg.track_pixels, self.generator, edge=cfg.track_edge)
-                res = track_frame(self.model, pred, dirs, rgb, depth, cfg, self.generator, cfg.max_pose_jump)
+                rays = ft.sample(cfg.track_pixels, self.generator, edge=cfg.track_edge)
+                res = track_frame(self.model, pred, *rays, cfg, self.generator, cfg.max_pose_jump)
+                if math.isfinite(res.best_loss):
+                    res = self._check_lost(i, frame, pred, rays, res, extra)
                 c2w, loss, fallback, iters = res.c2w, res.best_loss, res.fallback, res.iters
             else:  # geometric tracking only
                 c2w, loss, fallback, iters = pred, float("nan"), None, 0
@@ -192,6 +204,52 @@ class SlamSystem:
         self._log(rec)
         if i % cfg.map_every == 0:
             self._map(i, ft)
+
+    def _check_lost(self, i: int, frame: Frame, pred: torch.Tensor, rays: Rays, res: TrackResult,
+                    rec: dict) -> TrackResult:
+        """Lost-tracking check of frame i's rendered tracking `res` (slam.lost): a loss above factor x the median of
+        recent frames is lost. With `recover`, the frame is re-tracked from GICP onto the previous frame and from
+        the previous pose, keeping the lowest loss; still lost -> a `tracking_lost` fallback, and after
+        `stop_after` consecutive lost frames the run stops with TrackingLost."""
+        lc, s = self.cfg.slam.lost, self.state
+        level = float(np.median(s.track_losses[-lc.window:])) if s.track_losses else math.inf
+        if res.best_loss <= lc.factor * level:
+            s.track_losses = (s.track_losses + [res.best_loss])[-lc.window:]
+            s.lost_run = 0
+            return res
+        rec["lost_ratio"] = round(res.best_loss / level, 1)
+        if lc.recover:
+            cfg = dataclasses.replace(self.cfg.slam, track_iters=2 * self.cfg.slam.track_iters)
+            for start in self._recovery_starts(i, frame, pred):
+                alt = track_frame(self.model, start, *rays, cfg, self.generator, cfg.max_pose_jump)
+                if math.isfinite(alt.best_loss) and alt.best_loss < res.best_loss:
+                    res = alt
+            rec["recovered_ratio"] = round(res.best_loss / level, 1)
+            if res.best_loss <= lc.factor * level:  # its loss stays out of the level: a lost view may not raise it
+                s.lost_run = 0
+                return dataclasses.replace(res, fallback=",".join(f for f in (res.fallback, "tracking_recovered")
+                                                                   if f))
+        s.lost_run += 1
+        if lc.stop_after and s.lost_run >= lc.stop_after:
+            raise TrackingLost(
+                f"tracking lost for {s.lost_run} consecutive frames up to frame {i} (loss {res.best_loss:.3g}, "
+                f"{res.best_loss / level:.0f}x its running level {level:.3g}); the frames before are in the last "
+                f"checkpoint. Lower data.stride, set slam.lost.recover=true, or slam.lost.stop_after=0 to go on")
+        return dataclasses.replace(res, fallback=",".join(f for f in (res.fallback, "tracking_lost") if f))
+
+    def _recovery_starts(self, i: int, frame: Frame, pred: torch.Tensor) -> list[torch.Tensor]:
+        """Starting poses to re-track a lost frame from: GICP of its depth onto the previous frame's with a wide
+        correspondence distance (from the prediction), and the previous pose (no motion)."""
+        g = dataclasses.replace(self.cfg.slam.gicp, max_corr=self.cfg.slam.lost.recover_max_corr, max_step=1.0,
+                                min_fitness=0.3)
+        prev = self.dataset[i - 1]
+        base = self.est[i - 1].double().cpu().numpy()
+        reg = register(prepare_depth(prev.depth, prev.intrinsics, g), prepare_depth(frame.depth, frame.intrinsics, g),
+                       np.linalg.inv(base) @ pred.double().cpu().numpy(), g)
+        starts = [self.est[i - 1].clone()]
+        if reg.ok:
+            starts.insert(0, torch.as_tensor(base @ reg.T_target_source, dtype=pred.dtype, device=pred.device))
+        return starts
 
     def _gicp_init(self, i: int, frame: Frame, pred: torch.Tensor, rec: dict) -> torch.Tensor:
         """GICP of frame i's depth onto its target (`slam.gicp.target`: frame i-1, the GICP keyframe, or a local map
@@ -314,6 +372,7 @@ class SlamSystem:
             "psnr_process_db": float(np.mean(s.proc_psnr)) if s.proc_psnr else None,
             "depth_l1_process_m": float(np.mean(s.proc_depth_l1)) if s.proc_depth_l1 else None,
             "fallbacks": len(s.events),
+            "lost_frames": sum(e["event"].split(",").count("tracking_lost") for e in s.events),
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
         }

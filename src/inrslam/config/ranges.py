@@ -1,0 +1,111 @@
+"""The valid range of every numeric config key, checked when a config is loaded (before any work starts).
+
+A value out of range is a `ConfigError` naming the key, where it was set and what is expected; every float must be
+finite. Keys not listed here take any finite value of their type.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Callable
+
+from inrslam.errors import ConfigError
+
+Rule = tuple[Callable[[Any], bool], str]
+
+
+def at_least(lo: float) -> Rule:
+    return (lambda v: v >= lo), f">= {lo:g}"
+
+
+def above(lo: float) -> Rule:
+    return (lambda v: v > lo), f"> {lo:g}"
+
+
+def between(lo: float, hi: float, open_lo: bool = False) -> Rule:
+    return ((lambda v: lo < v <= hi) if open_lo else (lambda v: lo <= v <= hi)), f"in {'(' if open_lo else '['}" \
+                                                                                f"{lo:g}, {hi:g}]"
+
+
+def zero_or_at_least(lo: int) -> Rule:
+    return (lambda v: v == 0 or v >= lo), f"0 (default) or >= {lo}"
+
+
+NONNEG, POS, COUNT, FRACTION = at_least(0), above(0), at_least(1), between(0.0, 1.0)
+
+RANGES: dict[str, Rule] = {
+    # data
+    "data.max_frames": NONNEG, "data.stride": COUNT, "data.start": NONNEG, "data.depth_scale": POS,
+    "data.bounds_frames": COUNT, "data.bounds_margin": NONNEG, "data.crop_edge": NONNEG, "data.depth_max": NONNEG,
+    "data.builtin.frames": NONNEG, "data.builtin.width": zero_or_at_least(16),
+    "data.builtin.height": zero_or_at_least(16), "data.builtin.depth_noise": NONNEG,
+    "data.builtin.missing_depth": between(0.0, 1.0), "data.builtin.motion_scale": POS,
+    "data.tum.max_dt_depth": NONNEG, "data.tum.max_dt_pose": NONNEG,
+    # field
+    "field.levels": COUNT, "field.feature_dim": COUNT, "field.block_coarse": POS, "field.block_fine": POS,
+    "field.app_block_coarse": POS, "field.app_block_fine": POS, "field.plane_block_coarse": POS,
+    "field.log2_hashmap_size": between(1, 30), "field.geo_feat_dim": COUNT, "field.hidden_dim": COUNT,
+    "field.truncation": POS, "field.grid_init": NONNEG, "field.plane_init_std": NONNEG, "field.mlp.width": COUNT,
+    "field.mlp.depth": COUNT,
+    # rendering, sampling, losses
+    "render.beta_lr": NONNEG, "render.density.beta": POS, "render.neus.fd_eps": POS,
+    "render.neus.anneal_end": NONNEG, "render.volsdf.beta_init": POS, "render.volsdf.beta_min": POS,
+    "sampling.n_free": NONNEG, "sampling.n_surface": NONNEG, "sampling.n_uniform": COUNT, "sampling.near": NONNEG,
+    "sampling.far_factor": POS, "sampling.band": POS,
+    "loss.color": NONNEG, "loss.depth": NONNEG, "loss.free_space": NONNEG, "loss.center": NONNEG,
+    "loss.tail": NONNEG, "loss.center_band": between(0.0, 1.0, open_lo=True),
+    # slam
+    "slam.init_iters": NONNEG, "slam.init_pixels": COUNT, "slam.track_iters": NONNEG, "slam.track_pixels": COUNT,
+    "slam.track_lr": POS, "slam.track_edge": NONNEG, "slam.map_every": COUNT, "slam.map_iters": NONNEG,
+    "slam.map_pixels": COUNT, "slam.map_current_min": NONNEG, "slam.map_lr": POS, "slam.ba_lr": POS,
+    "slam.ba_pose_every": COUNT, "slam.keyframe_fraction": between(0.0, 1.0, open_lo=True),
+    "slam.max_pose_jump": POS, "slam.checkpoint_every": NONNEG, "slam.mesh_every": NONNEG,
+    "slam.gicp.downsample": POS, "slam.gicp.max_corr": POS, "slam.gicp.neighbors": COUNT,
+    "slam.gicp.max_iterations": COUNT, "slam.gicp.eps_trans": POS, "slam.gicp.eps_rot": POS,
+    "slam.gicp.pixel_stride": COUNT, "slam.gicp.max_depth": POS, "slam.gicp.min_fitness": FRACTION,
+    "slam.gicp.degeneracy_ratio": NONNEG, "slam.gicp.max_step": POS, "slam.gicp.threads": COUNT,
+    "slam.gicp.kf_dist": POS, "slam.gicp.kf_angle": POS, "slam.gicp.kf_fitness": FRACTION,
+    "slam.gicp.local_map_keyframes": COUNT,
+    "slam.sdf_track.iters": NONNEG, "slam.sdf_track.points": COUNT, "slam.sdf_track.huber": POS,
+    "slam.sdf_track.band": POS, "slam.sdf_track.min_points": COUNT, "slam.sdf_track.tol_trans": POS,
+    "slam.sdf_track.tol_rot": POS, "slam.sdf_track.damping": NONNEG, "slam.sdf_track.max_step": POS,
+    "slam.lost.factor": above(1), "slam.lost.window": COUNT, "slam.lost.recover_max_corr": POS,
+    "slam.lost.stop_after": NONNEG,
+    # outputs, evaluation
+    "mesh.resolution": at_least(0.001), "mesh.chunk": COUNT,
+    "eval.max_time_diff": NONNEG, "eval.rpe_delta": COUNT, "eval.cull_every": COUNT, "eval.cull_eps": NONNEG,
+    "eval.n_samples": COUNT, "eval.threshold": POS, "eval.heldout_every": NONNEG, "eval.heldout_max": NONNEG,
+    "eval.heldout_samples": at_least(2),
+    "threads": NONNEG,
+}
+
+
+def _leaves(cfg: Any, prefix: str = ""):
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        key = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            yield from _leaves(value, f"{key}.")
+        else:
+            yield key, value
+
+
+def check_ranges(cfg: Any, sources: dict[str, str]) -> None:
+    """Raise ConfigError for the first numeric key of `cfg` out of its range (or not finite)."""
+
+    def fail(key: str, value: Any, expected: str) -> ConfigError:
+        return ConfigError(f"config key {key!r} in {sources.get(key, 'defaults')}: expected {expected}, got {value!r}")
+
+    for key, value in _leaves(cfg):
+        values = value if isinstance(value, list) else [value]
+        for v in values:
+            if isinstance(v, float) and not math.isfinite(v):
+                raise fail(key, value, "a finite number")
+        rule = RANGES.get(key)
+        if rule is not None and value is not None and not rule[0](value):
+            kind = "an integer" if isinstance(value, int) else "a number"
+            raise fail(key, value, f"{kind} {rule[1]}")
+    s = getattr(cfg, "sampling", None)
+    if s is not None and s.n_free + s.n_surface == 0:
+        raise fail("sampling.n_surface", 0, "at least one sample per ray with depth (n_free + n_surface >= 1)")
