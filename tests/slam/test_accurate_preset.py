@@ -70,11 +70,12 @@ def test_gicp_keyframe_target_is_renewed_and_previous_target_is_the_last_frame(a
 
 
 def test_neural_tracking_runs_only_where_gicp_failed(tmp_path_factory):
-    # an impossible fitness requirement makes every registration fail: the map takes over on every frame
-    out = run(tmp_path_factory, "fallback", "accurate", ["slam.gicp.min_fitness=1.01"])
+    # an impossible conditioning requirement (smallest / largest eigenvalue >= 2) makes every registration fail:
+    # the map takes over on every frame
+    out = run(tmp_path_factory, "fallback", "accurate", ["slam.gicp.degeneracy_ratio=2"])
     recs = tracks(out)
     for r in recs:
-        assert r["fallback"].startswith("gicp_low_fitness")
+        assert r["fallback"].startswith("gicp_degenerate")
         assert r["sdf_iters"] >= 1 and r["iters"] >= 1
     events = json.loads((out / "metrics.json").read_text())["fallbacks"]
     assert events == FRAMES - 1
