@@ -131,3 +131,37 @@ def test_the_loops_config_protocol_names_runconfigs_sections():
     wanted, run = typing.get_type_hints(SlamRunConfig), typing.get_type_hints(RunConfig)
     assert set(wanted) >= {"field", "render", "slam", "mesh", "seed", "device"}
     assert all(run[k] == tp for k, tp in wanted.items())
+
+
+def test_config_yaml_records_the_thread_count_used(tmp_path):
+    import yaml
+
+    from inrslam.fields.kernels.threads import resolve_threads
+
+    run_slam(tiny_cfg(["data.max_frames=2"]), tmp_path / "r")
+    assert yaml.safe_load(RunDir(tmp_path / "r").config.read_text())["threads"] == resolve_threads(0) >= 1
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 2 MiB tmpfs (needs the right to mount: root in a container), unmounted afterwards."""
+    import subprocess
+
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True).returncode:
+        pytest.skip("cannot mount a tmpfs here (needs root): the full-disk case is covered by the simulated test")
+    yield mnt
+    proc = subprocess.run(["umount", str(mnt)], capture_output=True, text=True)
+    if proc.returncode:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def test_a_really_full_disk_keeps_the_previous_checkpoint(small_disk):
+    path = small_disk / "checkpoints" / "latest.pt"
+    save_checkpoint(path, _state())
+    before = path.read_bytes()
+    with pytest.raises(RunError, match="no space left on device") as e:
+        save_checkpoint(path, {**_state(), "model": {"w": torch.zeros(1_000_000, dtype=torch.float64)}})  # 8 MB
+    assert "\n" not in str(e.value) and "--resume" in str(e.value)
+    assert path.read_bytes() == before and [p.name for p in path.parent.iterdir()] == ["latest.pt"]

@@ -95,7 +95,8 @@ def config_differences(run_dir: Path, cfg) -> list[str]:
     except ConfigError as e:
         return [str(e)]
     new = _flatten(config_to_dict(cfg))
-    return [f"{k}: {old[k]!r} -> {new[k]!r}" for k in sorted(set(old) & set(new)) if old[k] != new[k]]
+    # `threads` is recorded as used (the sweep sets it per job), not as the spec asked
+    return [f"{k}: {old[k]!r} -> {new[k]!r}" for k in sorted(set(old) & set(new) - {"threads"}) if old[k] != new[k]]
 
 
 def _check_existing(runs: list[RunSpec], cfgs: dict, out: Path) -> None:

@@ -3,6 +3,7 @@ them too). They sit above `slam` and `eval`: run SLAM, then evaluate the run dir
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -39,7 +40,8 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, 
     with thread_scope(threads):
         system = SlamSystem(cfg, dataset)
         out.mkdir(parents=True, exist_ok=True)
-        write_text(rd.config, dump_config(cfg))  # the resolved config: `--config` reproduces the run
+        # the resolved config, with the thread count used: `--config` reproduces the run (docs/reliability.md)
+        write_text(rd.config, dump_config(dataclasses.replace(cfg, threads=threads)))
         return _drive(system, RunWriter(system, rd, threads), resume=False, progress=progress)
 
 
