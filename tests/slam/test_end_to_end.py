@@ -64,8 +64,13 @@ def test_outputs_parse_and_trajectory_is_accurate(run_a):
 
 
 def test_resolved_config_reproduces_run(run_a):
+    import dataclasses
+
+    from inrslam.fields.kernels.threads import resolve_threads
+
     cfg = load_config(run_a / "config.yaml", preset=None)
-    assert cfg == quick_cfg()
+    assert cfg.threads == resolve_threads(0)  # the count used, not 0 ("every core"): --config sums in that order
+    assert cfg == dataclasses.replace(quick_cfg(), threads=cfg.threads)
 
 
 def test_determinism_same_seed(run_a, tmp_path):
