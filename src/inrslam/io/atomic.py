@@ -39,6 +39,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+def temporary_files(folder: str | os.PathLike) -> list[Path]:
+    """The temporary files `atomic_path` leaves in `folder` when its process is killed mid-write."""
+    return [p for p in Path(folder).glob(".*.tmp*") if p.is_file()]
+
+
 _UMASK_LOCK = threading.Lock()
 
 

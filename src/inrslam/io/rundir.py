@@ -12,7 +12,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from inrslam.io.atomic import write_json
+from inrslam.io.atomic import temporary_files, write_json
 
 
 def read_json(path: str | os.PathLike) -> Any:
@@ -139,13 +139,9 @@ class RunDir:
         return merged
 
     def remove_stale_temporaries(self) -> list[Path]:
-        """Delete the temporary files of atomic writes a killed process left (`.NAME.*.tmp*` in the run folder,
-        checkpoints/ and meshes/); returns what was removed."""
-        gone = []
-        for folder in (self.root, self.checkpoints, self.meshes):
-            if folder.is_dir():
-                for p in folder.glob(".*.tmp*"):
-                    if p.is_file():
-                        p.unlink(missing_ok=True)
-                        gone.append(p)
+        """Delete the temporary files of atomic writes a killed process left in the run folder, checkpoints/ and
+        meshes/ (`inrslam.io.atomic.temporary_files`); returns what was removed."""
+        gone = [p for folder in (self.root, self.checkpoints, self.meshes) for p in temporary_files(folder)]
+        for p in gone:
+            p.unlink(missing_ok=True)
         return gone

@@ -22,6 +22,7 @@ import torch
 import trimesh
 
 import inrslam
+from inrslam.datasets import absolute_path
 from inrslam.errors import RunError
 from inrslam.io.atomic import append_jsonl, atomic_path, write_json
 from inrslam.io.rundir import RunDir
@@ -152,14 +153,14 @@ class RunWriter:
         gt_mesh = getattr(ds, "gt_mesh", None)
         info = {
             "status": status,
-            "dataset": {"kind": getattr(ds, "name", "?"), "root": _absolute(root) if root else "",
+            "dataset": {"kind": getattr(ds, "name", "?"), "root": str(absolute_path(root)) if root else "",
                         "frames": sysm.n_frames},
             "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
                            "width": intr.width, "height": intr.height},
             "bounds": sysm.bounds.tolist(),
             "bounds_source": ("estimated from the depth of the first frames with their ground-truth poses"
                               if getattr(ds, "bounds_estimated", False) else "dataset / config"),
-            "gt_mesh": _absolute(gt_mesh) if gt_mesh else None,
+            "gt_mesh": str(absolute_path(gt_mesh)) if gt_mesh else None,
             "keyframes": list(st.store.frame_ids),
             "timestamps": st.timestamps[: st.next_frame].tolist(),
             "frames_processed": st.next_frame,
@@ -199,12 +200,12 @@ class RunWriter:
         if self.cfg.mesh.enabled:
             with self.step("mesh extraction"):
                 self.write_mesh(self.system.mesh(), rd.mesh)
-        res = self.system.result()  # again: an empty mesh is an event the metrics count
         if self.tb is not None:
             self.tb.close()
             self.tb = None
         process = {"wall_time_s": wall_s, "peak_memory_mb": self.peak_memory_mb()}
-        return {**dict.fromkeys(METRIC_ORDER), **res.metrics, **process}  # dict order: METRIC_ORDER first
+        # metrics after the mesh: an empty mesh is an event they count; dict order: METRIC_ORDER first
+        return {**dict.fromkeys(METRIC_ORDER), **self.system.process_metrics(), **process}
 
 
 # key order of the process metrics in metrics.json (docs/metrics.md)
@@ -212,7 +213,3 @@ METRIC_ORDER = ("frames", "track_ms_per_frame", "map_ms_per_call", "init_ms", "w
                 "model_size_with_optimizer_mb", "peak_memory_mb", "psnr_process_db", "depth_l1_process_m",
                 "fallbacks", "lost_frames", "encoding", "render")
 
-
-def _absolute(p: Any) -> str:
-    """`p` as an absolute path (run directories may be read from another working directory)."""
-    return str(Path(p).absolute())

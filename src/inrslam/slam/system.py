@@ -54,6 +54,11 @@ def resolve_device(name: str) -> torch.device:
     return dev
 
 
+def _joined(*events: str | None) -> str:
+    """The events that happened, comma-joined as a log record's `fallback` ("" when none)."""
+    return ",".join(e for e in events if e)
+
+
 @dataclass
 class SlamResult:
     """What a finished loop hands to its writer (numpy, float64 c2w in OpenCV axes).
@@ -195,8 +200,7 @@ class SlamSystem:
         kf = self.store.frame_ids[-1]
         self.state.rel[i] = torch.linalg.inv(self.est[kf]) @ c2w
         self.state.rel_kf[i] = kf
-        fallback = ",".join(f for f in (extra.pop("init_fallback", None), extra.pop("sdf_fallback", None), fallback)
-                            if f)
+        fallback = _joined(extra.pop("init_fallback", None), extra.pop("sdf_fallback", None), fallback)
         rec = {"type": "track", "frame": i, "loss": loss, "track_ms": track_ms, "iters": iters, **extra}
         if fallback:
             rec["fallback"] = fallback
@@ -227,15 +231,14 @@ class SlamSystem:
             rec["recovered_ratio"] = round(res.best_loss / level, 1)
             if res.best_loss <= lc.factor * level:  # its loss stays out of the level: a lost view may not raise it
                 s.lost_run = 0
-                return dataclasses.replace(res, fallback=",".join(f for f in (res.fallback, "tracking_recovered")
-                                                                   if f))
+                return dataclasses.replace(res, fallback=_joined(res.fallback, "tracking_recovered"))
         s.lost_run += 1
         if lc.stop_after and s.lost_run >= lc.stop_after:
             raise TrackingLost(
                 f"tracking lost for {s.lost_run} consecutive frames up to frame {i} (loss {res.best_loss:.3g}, "
                 f"{res.best_loss / level:.0f}x its running level {level:.3g}); the frames before are in the last "
                 f"checkpoint. Lower data.stride, set slam.lost.recover=true, or slam.lost.stop_after=0 to go on")
-        return dataclasses.replace(res, fallback=",".join(f for f in (res.fallback, "tracking_lost") if f))
+        return dataclasses.replace(res, fallback=_joined(res.fallback, "tracking_lost"))
 
     def _recovery_starts(self, i: int, frame: Frame, pred: torch.Tensor) -> list[torch.Tensor]:
         """Starting poses to re-track a lost frame from: GICP of its depth onto the previous frame's with a wide
@@ -357,12 +360,18 @@ class SlamSystem:
 
     def result(self) -> SlamResult:
         """Trajectories, keyframes and process metrics of the frames processed so far."""
-        from inrslam.fields import model_size_mb
-
         s = self.state
         est = s.est.double().cpu().numpy()
         rel = relative_trajectory(est, s.rel.double().cpu().numpy(), s.rel_kf, s.store.frame_ids)
-        metrics = {
+        return SlamResult(est=est, relative=rel, gt=s.gt, timestamps=s.timestamps, keyframes=list(s.store.frame_ids),
+                          metrics=self.process_metrics())
+
+    def process_metrics(self) -> dict[str, Any]:
+        """The process metrics of docs/metrics.md so far (timings, model size, PSNR while mapping, events)."""
+        from inrslam.fields import model_size_mb
+
+        s = self.state
+        return {
             "frames": self.n_frames,
             "track_ms_per_frame": float(np.mean(s.track_ms)) if s.track_ms else None,
             "map_ms_per_call": float(np.mean(s.map_ms)) if s.map_ms else None,
@@ -376,5 +385,3 @@ class SlamSystem:
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
         }
-        return SlamResult(est=est, relative=rel, gt=s.gt, timestamps=s.timestamps, keyframes=list(s.store.frame_ids),
-                          metrics=metrics)
