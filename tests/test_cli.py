@@ -108,3 +108,16 @@ def test_eval_run_dir_reads_only_the_eval_section(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "eval.n_sample" in err or "n_sample" in err
     assert "config.yaml" in err
+
+
+def test_overrides_anywhere_on_the_command_line(capsys):
+    assert main(["config", "slam.track_iters=7", "--preset", "quick", "field.levels=3", "mesh.resolution=0.05"]) == 0
+    cfg = yaml.safe_load(capsys.readouterr().out)
+    assert cfg["slam"]["track_iters"] == 7 and cfg["field"]["levels"] == 3 and cfg["mesh"]["resolution"] == 0.05
+
+
+def test_a_stray_word_among_the_flags_is_still_unrecognised(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["config", "--preset", "quick", "slam.track_iters=7", "--preset", "quick", "stray"])
+    assert e.value.code == 2
+    assert "unrecognized arguments: stray" in capsys.readouterr().err

@@ -28,6 +28,7 @@ EXIT_ERROR = 2  # a user-fixable error (one line on stderr)
 EXIT_RUNS_FAILED = 1  # `bench`: the sweep went through but some runs failed
 EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT), as shells report it
 DEVICE_RE = re.compile(r"auto|cpu|cuda(:\d+)?")
+OVERRIDE_RE = re.compile(r"[A-Za-z_][\w.]*=.*", re.S)  # a config override KEY=VALUE
 
 
 def _registry_help() -> tuple[str, str]:
@@ -74,6 +75,8 @@ def build_parser(registry_help: bool = True) -> argparse.ArgumentParser:
                                      "(replica, neuralrgbd, scannet, tum, 7scenes)")
     r.add_argument("--device", help="auto (default), cpu, cuda, cuda:N")
     r.add_argument("--seed", type=int, help="random seed")
+    r.add_argument("--poses", help="map with given poses instead of tracking: 'gt' (the dataset's ground truth) or "
+                   "a TUM trajectory file (associated by timestamp); sets slam.poses")
     r.add_argument("--resume", metavar="DIR", help="continue an interrupted run directory from its last checkpoint")
     r.add_argument("--overwrite", action="store_true", help="replace an existing run in --out")
     r.add_argument("--quiet", action="store_true", help="no progress bar or table")
@@ -165,13 +168,16 @@ def _check_device(cfg) -> None:
 
 
 def _absolute_paths(cfg):
-    """`cfg` with `data.path` and `eval.virtual_cameras` absolute (relative to the current directory), so the run's
-    config.yaml and run_info.json still point at the data from any directory (`--resume`, `eval`)."""
+    """`cfg` with `data.path`, `slam.poses` (a file) and `eval.virtual_cameras` absolute (relative to the current
+    directory), so the run's config.yaml and run_info.json still point at them from any directory (`--resume`,
+    `eval`)."""
     from dataclasses import replace
 
     from inrslam.datasets import absolute_data_config, absolute_path
 
     cfg = replace(cfg, data=absolute_data_config(cfg.data))
+    if cfg.slam.poses and cfg.slam.poses != "gt":
+        cfg = replace(cfg, slam=replace(cfg.slam, poses=str(absolute_path(cfg.slam.poses))))
     if cfg.eval.virtual_cameras:
         cfg = replace(cfg, eval=replace(cfg.eval, virtual_cameras=str(absolute_path(cfg.eval.virtual_cameras))))
     return cfg
@@ -205,7 +211,8 @@ def _run_command(args) -> int:
     console = Console(stderr=False)
     if args.resume:
         given = [f"--{k.replace('_', '-')}" for k in ("data", "out", "encoding", "render", "max_frames", "config",
-                                                      "dataset", "device", "seed") if getattr(args, k) is not None]
+                                                      "dataset", "device", "seed", "poses")
+                 if getattr(args, k) is not None]
         if given or args.overrides:
             raise InrslamError(f"inrslam run --resume continues a run with its own config.yaml; do not combine it "
                                f"with {', '.join(given + list(args.overrides))}")
@@ -222,7 +229,7 @@ def _run_command(args) -> int:
         ov = list(args.overrides)
         for flag, key in (("data", "data.path"), ("encoding", "field.encoding"), ("render", "render.name"),
                           ("max_frames", "data.max_frames"), ("dataset", "data.dataset"), ("device", "device"),
-                          ("seed", "seed")):
+                          ("seed", "seed"), ("poses", "slam.poses")):
             val = getattr(args, flag)
             if val is not None:
                 ov.append(f"{key}={val}")
@@ -377,7 +384,6 @@ def _run_eval_config(args):
 
     from inrslam.config.loader import build_config
     from inrslam.eval.config import Alignment, EvalConfig
-
     from inrslam.io.rundir import RunDir
 
     cfg_path = RunDir(args.run_dir).config
@@ -462,10 +468,32 @@ def _interrupted_message(args) -> str:
     return "interrupted"
 
 
+def _one_line_warnings() -> None:
+    """Our warnings (InrslamWarning) print as `inrslam: warning: ...`, without a source line."""
+    import warnings
+
+    from inrslam.errors import InrslamWarning
+
+    default = warnings.formatwarning
+
+    def fmt(message, category, filename, lineno, line=None):
+        if issubclass(category, InrslamWarning):
+            return f"inrslam: warning: {message}\n"
+        return default(message, category, filename, lineno, line)
+
+    warnings.formatwarning = fmt  # type: ignore[assignment]
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    _one_line_warnings()
     parser = build_parser(registry_help=argv[:1] == ["run"])
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    # KEY=VALUE overrides anywhere on the line: argparse takes one run of positionals, the later ones come back here
+    if extra and getattr(args, "overrides", None) is not None and all(OVERRIDE_RE.fullmatch(x) for x in extra):
+        args.overrides = list(args.overrides) + extra
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return COMMANDS[args.command](args)
     except InrslamError as e:

@@ -19,3 +19,7 @@ class RunError(InrslamError):
 
 class TrackingLost(InrslamError):
     """Tracking stayed lost for `slam.lost.stop_after` frames (the run stops; finished work is checkpointed)."""
+
+
+class InrslamWarning(UserWarning):
+    """Something a user should know that does not stop the run (the CLI prints it as one line)."""

@@ -111,3 +111,19 @@ def test_local_map_target_registers_onto_merged_keyframes(tmp_path_factory):
     _, est = read_tum(out / "trajectory.txt")
     _, gt = read_tum(out / "trajectory_gt.txt")
     assert np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1).max() < 0.003
+
+
+def test_fast_preset_tracks_like_accurate_with_a_lighter_map(tmp_path_factory):
+    fast, acc = load_config(preset="fast"), load_config(preset="accurate")
+    for key in ("init", "track_only_on_init_failure", "bundle_adjust", "pose_param"):
+        assert getattr(fast.slam, key) == getattr(acc.slam, key), key
+    assert fast.slam.gicp.target == acc.slam.gicp.target
+    work = lambda s: s.map_iters * s.map_pixels / s.map_every  # rays mapped per frame  # noqa: E731
+    assert work(fast.slam) < work(acc.slam) / 5 and fast.slam.init_iters < acc.slam.init_iters
+    out = tmp_path_factory.mktemp("fast") / "run"
+    run_slam(load_config(preset="fast", overrides=["data.max_frames=12", "data.builtin.width=96",
+                                                   "data.builtin.height=72", "eval.enabled=false",
+                                                   "mesh.enabled=false", "output.tensorboard=false"]), out)
+    recs = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["frame"] for r in recs if r["type"] == "map"] == [10]
+    assert all("gicp_fitness" in r for r in recs if r["type"] == "track")

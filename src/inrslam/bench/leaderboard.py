@@ -45,6 +45,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("depth_l1_cm", "Depth L1 [cm]", "depth_l1_process_m", 100.0),
     Column("track_ms", "Track [ms]", "track_ms_per_frame", 1.0, decimals=0),
     Column("map_ms", "Map [ms]", "map_ms_per_call", 1.0, decimals=0),
+    Column("map_ms_frame", "Map [ms/frame]", "map_ms_per_frame", 1.0, decimals=0),
     Column("model_mb", "Model [MB]", "model_size_mb", 1.0),
 )
 COLUMN_BY_KEY = {c.key: c for c in COLUMNS}

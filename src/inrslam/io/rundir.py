@@ -98,6 +98,15 @@ class RunDir:
         """A partial run can be resumed: config.yaml and checkpoints/latest.pt exist."""
         return self.checkpoint.is_file() and self.config.is_file()
 
+    def remove_checkpoints(self) -> int:
+        """Delete checkpoints/ (a finished run that need not be resumed or re-rendered); returns the bytes freed."""
+        folder = self.checkpoints
+        if not folder.is_dir():
+            return 0
+        size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+        shutil.rmtree(folder)
+        return size
+
     def clear(self) -> None:
         """Remove every file and folder a SLAM run writes (the sweep's bench.json / error.txt and any other file in
         the folder are left alone)."""

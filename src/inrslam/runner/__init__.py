@@ -105,4 +105,7 @@ def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
         raise RunError(f"{rd.root}: SLAM finished and its outputs are written, but {'; '.join(writer.failures)} "
                        f"(traceback in log.jsonl); after fixing it, evaluate with: inrslam eval {rd.root}")
     writer.write_run_info("complete")
+    if not system.cfg.output.keep_checkpoint:  # only once complete: until then it is what a resume needs
+        freed = rd.remove_checkpoints()
+        writer.log([{"type": "checkpoint_removed", "bytes": freed}])
     return rd.root

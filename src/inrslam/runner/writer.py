@@ -13,6 +13,7 @@ import platform
 import resource
 import time
 import traceback
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
@@ -23,10 +24,11 @@ import trimesh
 
 import inrslam
 from inrslam.datasets import absolute_path
-from inrslam.errors import RunError
+from inrslam.errors import InrslamWarning, RunError
 from inrslam.io.atomic import append_jsonl, atomic_path, write_json
 from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import write_tum
+from inrslam.omp_env import wait_policy
 from inrslam.runner.checkpoint import IDENTITY, load_checkpoint, save_checkpoint
 from inrslam.slam.system import SlamSystem
 
@@ -66,8 +68,11 @@ class RunWriter:
 
     def _identity(self) -> dict:
         """What a checkpoint must agree on to belong to this run."""
-        return {"frames": self.system.n_frames, "encoding": self.cfg.field.encoding, "render": self.cfg.render.name,
-                "seed": self.cfg.seed}
+        ident = {"frames": self.system.n_frames, "encoding": self.cfg.field.encoding, "render": self.cfg.render.name,
+                 "seed": self.cfg.seed}
+        if self.system.given is not None:  # a changed pose file must not continue a map built on the old one
+            ident["poses"] = self.system.given.source.get("sha256", "gt")
+        return ident
 
     def _restore(self) -> None:
         st = load_checkpoint(self.rd.checkpoint, self._identity())
@@ -90,7 +95,10 @@ class RunWriter:
             return
         try:
             from torch.utils.tensorboard import SummaryWriter
-        except Exception:  # tensorboard not installed: optional
+        except Exception:  # tensorboard not installed: optional, but it was asked for
+            msg = ("output.tensorboard=true but tensorboard is not installed (pip install tensorboard); this run "
+                   "writes no TensorBoard scalars (set output.tensorboard=false to silence this)")
+            warnings.warn(msg, InrslamWarning, stacklevel=2)
             return
         self.tb = SummaryWriter(str(self.rd.tensorboard),
                                 purge_step=self.system.state.next_frame if resume else None)
@@ -145,7 +153,8 @@ class RunWriter:
                 mesh.export(tmp)
 
     def write_run_info(self, status: str) -> None:
-        """run_info.json: status, dataset (absolute paths), intrinsics, bounds, keyframes, versions, device, threads."""
+        """run_info.json: status, dataset (absolute paths), intrinsics, bounds, keyframes, versions, device, threads and
+        their OpenMP wait policy."""
         sysm, ds = self.system, self.system.dataset
         st = sysm.state
         intr = ds.intrinsics
@@ -168,6 +177,8 @@ class RunWriter:
                          "python": platform.python_version()},
             "device": str(sysm.device),
             "threads": self.threads if self.threads is not None else torch.get_num_threads(),
+            "omp_wait_policy": wait_policy(),
+            "poses": sysm.given.source if sysm.given is not None else {"source": "tracked"},
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
         }
@@ -209,7 +220,7 @@ class RunWriter:
 
 
 # key order of the process metrics in metrics.json (docs/metrics.md)
-METRIC_ORDER = ("frames", "track_ms_per_frame", "map_ms_per_call", "init_ms", "wall_time_s", "model_size_mb",
-                "model_size_with_optimizer_mb", "peak_memory_mb", "psnr_process_db", "depth_l1_process_m",
-                "fallbacks", "lost_frames", "encoding", "render")
+METRIC_ORDER = ("frames", "track_ms_per_frame", "map_ms_per_call", "map_ms_per_frame", "init_ms", "wall_time_s",
+                "model_size_mb", "model_size_with_optimizer_mb", "peak_memory_mb", "psnr_process_db",
+                "depth_l1_process_m", "fallbacks", "lost_frames", "encoding", "render", "poses")
 

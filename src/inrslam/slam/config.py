@@ -109,6 +109,9 @@ class SlamConfig:
     ba_pose_every: int = 5  # pose step every N mapping iterations (gradients accumulate in between)
     keyframe_fraction: float = 0.05  # fraction of each keyframe's pixels kept for global sampling (Table 3: 0.005)
     max_pose_jump: float = 0.5  # metres; a tracked pose moving more than this from the prediction is rejected
+    poses: str = ""  # mapping only, with given poses: "gt" (the dataset's) or a TUM file; "" = track (SLAM)
+    poses_tolerance: float = 0.02  # seconds; each frame takes the pose file's pose nearest in time, at most this far
+    poses_anchor: bool = True  # move a pose file's trajectory so frame 0 sits at the dataset's frame-0 pose
     checkpoint_every: int = 50  # frames between checkpoints (0 = only at the end)
     mesh_every: int = 0  # extract an intermediate mesh every N frames (0 = only at the end)
 
@@ -128,4 +131,5 @@ class OutputConfig:
     """What a run writes besides the mandatory outputs."""
 
     tensorboard: bool = True  # TensorBoard scalars when tensorboard is installed
+    keep_checkpoint: bool = True  # keep checkpoints/ of a finished run (false: delete it once the run is complete)
 

@@ -15,6 +15,7 @@ import torch
 import trimesh
 
 from inrslam.data.frame import Frame, RGBDDataset
+from inrslam.data.given_poses import GivenPoses, load_given_poses
 from inrslam.errors import ConfigError, DataError, TrackingLost
 from inrslam.slam.config import GicpConfig, GicpTarget, MeshConfig, PoseInit, SlamConfig
 from inrslam.slam.frame_tensors import FrameTensors
@@ -96,6 +97,10 @@ class SlamSystem:
             raise DataError(f"{getattr(dataset, 'root', 'dataset')}: frames are {intr.width}x{intr.height} px; the "
                             f"SLAM loop needs at least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE}")
         self.bounds = np.asarray(dataset.bounds, dtype=np.float64)
+        sc = cfg.slam
+        # mapping only (slam.poses): every frame's pose is given, nothing is tracked, poses stay fixed
+        self.given: GivenPoses | None = (load_given_poses(sc.poses, dataset, sc.poses_tolerance, sc.poses_anchor)
+                                         if sc.poses else None)
         self.model = SceneModel(cfg, self.bounds).to(self.device)
         self.state = SlamState.fresh(self.model, self.model.make_optimizers(cfg.slam.map_lr),
                                      KeyframeStore(device=self.device), torch.Generator().manual_seed(cfg.seed),
@@ -159,8 +164,8 @@ class SlamSystem:
             self.state.gt[i] = frame.c2w
         n_valid_depth = int((ft.depth > 0).sum())
         if i == 0:
-            c2w0 = torch.as_tensor(frame.c2w if frame.pose_valid else np.eye(4), dtype=torch.float32,
-                                   device=self.device)
+            start = self.given.c2w[0] if self.given is not None else frame.c2w if frame.pose_valid else np.eye(4)
+            c2w0 = torch.as_tensor(start, dtype=torch.float32, device=self.device)
             self.est[0] = c2w0
             t0 = time.perf_counter()
             hist = initialise(self.model, self.state.optimizers,
@@ -172,6 +177,9 @@ class SlamSystem:
             self._log({"type": "init", "frame": 0, "iters": len(hist), "loss_first": hist[0] if hist else None,
                        "loss_last": hist[-1] if hist else None, "init_ms": self.state.init_ms})
             self._add_keyframe(0, ft)
+            return
+        if self.given is not None:
+            self._place_given(i, ft)
             return
         prev = self.est[i - 1]
         pred = constant_velocity(prev, self.est[i - 2] if (i >= 2 and cfg.const_velocity) else None)
@@ -207,6 +215,18 @@ class SlamSystem:
             self._event(i, fallback)
         self._log(rec)
         if i % cfg.map_every == 0:
+            self._map(i, ft)
+
+    def _place_given(self, i: int, ft: FrameTensors) -> None:
+        """Mapping only: frame i takes its given pose (no tracking), then maps every `map_every`-th frame."""
+        assert self.given is not None
+        c2w = torch.as_tensor(self.given.c2w[i], dtype=torch.float32, device=self.device)
+        self.est[i] = c2w
+        kf = self.store.frame_ids[-1]
+        self.state.rel[i] = torch.linalg.inv(self.est[kf]) @ c2w
+        self.state.rel_kf[i] = kf
+        self._log({"type": "pose", "frame": i, "source": self.given.source["source"]})
+        if i % self.cfg.slam.map_every == 0:
             self._map(i, ft)
 
     def _check_lost(self, i: int, frame: Frame, pred: torch.Tensor, rays: Rays, res: TrackResult,
@@ -319,6 +339,8 @@ class SlamSystem:
 
     def _map(self, i: int, ft: FrameTensors) -> None:
         cfg = self.cfg.slam
+        if self.given is not None:  # given poses stay as given: no bundle adjustment
+            cfg = dataclasses.replace(cfg, bundle_adjust=False)
         kf_ids = list(self.store.frame_ids)
         t0 = time.perf_counter()
         res = map_frame(self.model, self.state.optimizers, self.store, self.est[kf_ids], self.est[i],
@@ -375,6 +397,7 @@ class SlamSystem:
             "frames": self.n_frames,
             "track_ms_per_frame": float(np.mean(s.track_ms)) if s.track_ms else None,
             "map_ms_per_call": float(np.mean(s.map_ms)) if s.map_ms else None,
+            "map_ms_per_frame": float(np.sum(s.map_ms)) / (s.next_frame - 1) if s.next_frame > 1 else None,
             "init_ms": s.init_ms,
             "model_size_mb": model_size_mb(self.model.field),
             "model_size_with_optimizer_mb": model_size_mb(self.model.field, with_optimizer=True),
@@ -384,4 +407,5 @@ class SlamSystem:
             "lost_frames": sum(e["event"].split(",").count("tracking_lost") for e in s.events),
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
+            "poses": self.given.source["source"] if self.given is not None else "tracked",
         }
