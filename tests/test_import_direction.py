@@ -23,6 +23,7 @@ LAYERS = [
     {"datasets"},
     {"runner"},
     {"bench"},
+    {"api"},
     {"cli"},
     {"__main__"},
 ]

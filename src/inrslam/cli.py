@@ -168,19 +168,9 @@ def _check_device(cfg) -> None:
 
 
 def _absolute_paths(cfg):
-    """`cfg` with `data.path`, `slam.poses` (a file) and `eval.virtual_cameras` absolute (relative to the current
-    directory), so the run's config.yaml and run_info.json still point at them from any directory (`--resume`,
-    `eval`)."""
-    from dataclasses import replace
+    from inrslam.api import absolute_paths
 
-    from inrslam.datasets import absolute_data_config, absolute_path
-
-    cfg = replace(cfg, data=absolute_data_config(cfg.data))
-    if cfg.slam.poses and cfg.slam.poses != "gt":
-        cfg = replace(cfg, slam=replace(cfg.slam, poses=str(absolute_path(cfg.slam.poses))))
-    if cfg.eval.virtual_cameras:
-        cfg = replace(cfg, eval=replace(cfg.eval, virtual_cameras=str(absolute_path(cfg.eval.virtual_cameras))))
-    return cfg
+    return absolute_paths(cfg)
 
 
 def _check_resumable_data(run_dir: str) -> None:

@@ -1,0 +1,77 @@
+"""The Python API: `import inrslam` stays light, `inrslam.run` -> `load_run` is read-only, the example runs."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import inrslam
+from inrslam.errors import RunError
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "run_inspect_compare.py"
+TINY = ["data.max_frames=6", "output.tensorboard=false", "seed=2"]
+
+
+def test_import_inrslam_does_not_load_torch_and_exposes_the_api():
+    code = "import sys, inrslam; print('torch' in sys.modules, sorted(inrslam.__all__))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split(" ", 1)
+    assert out[0] == "False"
+    for name in ("run", "load_config", "evaluate", "sweep", "report", "load_run"):
+        assert name in out[1] and callable(getattr(inrslam, name))
+    with pytest.raises(AttributeError):
+        inrslam.no_such_function  # noqa: B018
+
+
+def digest(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): (p.stat().st_mtime_ns, hashlib.sha256(p.read_bytes()).hexdigest())
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    return inrslam.run(tmp_path_factory.mktemp("api") / "run", preset="quick", overrides=TINY)
+
+
+def test_run_returns_the_run_read_back(finished):
+    r = finished
+    assert r.est.shape == (6, 4, 4) and r.gt.shape == (6, 4, 4) and r.timestamps.shape == (6,)
+    assert r.keyframes == json.loads((r.root / "keyframes.json").read_text())["keyframes"]
+    assert r.metrics["frames"] == 6 and r.config.data.max_frames == 6
+    assert np.allclose(r.est[0], r.gt[0], atol=1e-5)  # frame 0 starts at its GT pose
+    assert r.mesh() is not None and len(r.mesh().vertices) > 0
+
+
+def test_load_run_is_read_only_and_renders_the_map(finished):
+    before = digest(finished.root)
+    r = inrslam.load_run(finished.root)
+    rgb, depth = r.render(r.est[0])
+    assert digest(finished.root) == before  # not a byte, not a timestamp changed (a resume would cut log.jsonl)
+    intr = r.intrinsics
+    assert rgb.shape == (intr.height, intr.width, 3) and depth.shape == (intr.height, intr.width)
+    assert 0.0 <= rgb.min() and rgb.max() <= 1.0
+    # the rendered depth of a trained view agrees with the sensor's where it measured
+    from inrslam.datasets import open_dataset
+
+    gt_depth = open_dataset(r.config.data)[0].depth
+    valid = gt_depth > 0
+    assert np.median(np.abs(depth[valid] - gt_depth[valid])) < 0.1
+
+
+def test_load_run_of_a_folder_without_a_run_names_it(tmp_path):
+    with pytest.raises(RunError, match="not a run directory"):
+        inrslam.load_run(tmp_path)
+
+
+def test_the_example_runs(tmp_path):
+    res = subprocess.run([sys.executable, str(EXAMPLE), "--out", str(tmp_path), "--frames", "4"],
+                         capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-3000:]
+    lines = res.stdout.splitlines()
+    assert any(line.startswith("dense ") for line in lines) and any(line.startswith("hash ") for line in lines)
+    assert (tmp_path / "dense" / "metrics.json").is_file() and (tmp_path / "hash" / "metrics.json").is_file()
