@@ -45,6 +45,13 @@ def test_run_returns_the_run_read_back(finished):
     assert r.metrics["frames"] == 6 and r.config.data.max_frames == 6
     assert np.allclose(r.est[0], r.gt[0], atol=1e-5)  # frame 0 starts at its GT pose
     assert r.mesh() is not None and len(r.mesh().vertices) > 0
+    from PIL import Image
+
+    frames = r.metrics["heldout_frames"]
+    assert frames and sorted(p.name for p in (r.root / "renders").iterdir()) == [f"frame_{i:06d}.png" for i in frames]
+    w, h = Image.open(r.root / "renders" / f"frame_{frames[0]:06d}.png").size
+    assert (w, h) == (4 * r.intrinsics.width, r.intrinsics.height)
+    assert Image.open(r.root / "trajectory.png").size[0] > 100  # the top-down trajectory picture
 
 
 def test_load_run_is_read_only_and_renders_the_map(finished):
@@ -69,7 +76,7 @@ def test_load_run_of_a_folder_without_a_run_names_it(tmp_path):
 
 
 def test_the_example_runs(tmp_path):
-    res = subprocess.run([sys.executable, str(EXAMPLE), "--out", str(tmp_path), "--frames", "4"],
+    res = subprocess.run([sys.executable, str(EXAMPLE), "--out", str(tmp_path), "--frames", "3"],
                          capture_output=True, text=True)
     assert res.returncode == 0, res.stderr[-3000:]
     lines = res.stdout.splitlines()

@@ -121,3 +121,19 @@ def test_a_stray_word_among_the_flags_is_still_unrecognised(capsys):
         main(["config", "--preset", "quick", "slam.track_iters=7", "--preset", "quick", "stray"])
     assert e.value.code == 2
     assert "unrecognized arguments: stray" in capsys.readouterr().err
+
+
+def test_config_shows_each_keys_help_and_still_loads(capsys):
+    from inrslam.config import load_config
+    from inrslam.config.loader import config_to_dict
+
+    assert main(["config", "--preset", "fast"]) == 0
+    text = capsys.readouterr().out
+    assert yaml.safe_load(text) == config_to_dict(load_config(preset="fast"))
+    lines = text.splitlines()
+    assert "  track_iters: 20  # pose iterations per frame" in lines
+    assert "    max_iterations: 15  # Gauss-Newton iterations" in lines  # nested section, preset value
+    keys = [line for line in lines if line.startswith("  ") and not line.rstrip().endswith(":")]
+    assert all("  # " in line for line in keys)  # every key has its help
+    assert main(["config", "--plain"]) == 0
+    assert "#" not in capsys.readouterr().out

@@ -49,6 +49,13 @@ def cli(*args: str, cwd: Path, env: dict | None = None, timeout: float = 240) ->
                           text=True, timeout=timeout)
 
 
+def _default_sigint() -> None:
+    """In the child before exec: SIGINT back to its default, so the child's Python raises KeyboardInterrupt on it
+    even when the test run itself was started in the background with SIGINT ignored (a shell's `cmd &`), which
+    a child would inherit."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _env(extra: dict | None = None) -> dict:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(SRC), str(TESTS)])
@@ -141,7 +148,7 @@ def test_ctrl_c_in_run_says_how_to_resume_and_resume_completes(work, relative_ru
     out = work / "g"
     proc = subprocess.Popen([sys.executable, "-m", "inrslam.cli", "run", "--data", "data/room_rep", "--out", "g",
                              *RUN_ARGS], cwd=work, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+                            text=True, start_new_session=True, preexec_fn=_default_sigint)
     deadline = time.time() + 240
     while time.time() < deadline and proc.poll() is None and not RunDir(out).has_checkpoint():
         time.sleep(0.02)
@@ -163,7 +170,8 @@ def test_ctrl_c_in_bench_keeps_finished_runs_and_says_how_to_resume(tmp_path):
     out = tmp_path / "sweep"
     proc = subprocess.Popen([sys.executable, "-m", "inrslam.cli", "bench", str(spec), "--out", str(out)],
                             cwd=tmp_path, env=_env({"INRSLAM_BENCH_RUN_FN": "fault_runs:hang_other_seeds"}),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=_default_sigint)
     hanging = out / "room__dense__direct__quick__s1" / "started"
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None and not hanging.exists():

@@ -87,6 +87,7 @@ def build_parser(registry_help: bool = True) -> argparse.ArgumentParser:
     c = sub.add_parser("config", help="print a resolved config as YAML (preset + file + overrides)")
     c.add_argument("--preset", default="paper", help=f"preset: {', '.join(preset_names())} (default paper)")
     c.add_argument("--config", help="YAML config file")
+    c.add_argument("--plain", action="store_true", help="YAML without each key's help as a comment")
     c.add_argument("overrides", nargs="*", help="config overrides KEY=VALUE")
 
     e = sub.add_parser("eval", help="evaluate a run directory, or outside trajectories / meshes")
@@ -323,7 +324,12 @@ def _config_command(args) -> int:
 
     cfg = load_config(args.config, preset=args.preset, overrides=list(args.overrides))
     _check_registry_names(cfg)
-    print(dump_config(cfg), end="")
+    if args.plain:
+        print(dump_config(cfg), end="")
+    else:
+        from inrslam.config.keyhelp import commented_config
+
+        print(commented_config(cfg), end="")
     return 0
 
 
@@ -484,8 +490,11 @@ def main(argv: list[str] | None = None) -> int:
         args.overrides = list(args.overrides) + extra
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    from inrslam.interrupts import defer_sigint_in_jit
+
     try:
-        return COMMANDS[args.command](args)
+        with defer_sigint_in_jit():
+            return COMMANDS[args.command](args)
     except InrslamError as e:
         print(f"inrslam {args.command}: error: {e}", file=sys.stderr)
         return EXIT_ERROR

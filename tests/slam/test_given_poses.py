@@ -17,9 +17,9 @@ from inrslam.errors import DataError
 from inrslam.io.trajectory import read_tum, write_tum
 from inrslam.runner import resume_slam, run_slam
 
-FRAMES = 8
+FRAMES = 6
 OVERRIDES = [f"data.max_frames={FRAMES}", "output.tensorboard=false", "slam.checkpoint_every=3", "seed=5",
-             "eval.heldout_max=2"]
+             "eval.heldout_max=1", "slam.init_iters=30"]
 
 
 def rigid(rng: np.random.Generator) -> np.ndarray:
@@ -102,6 +102,7 @@ def test_a_given_pose_run_keeps_the_given_poses_and_says_where_they_came_from(gt
 def test_mapping_every_frame_maps_every_frame_and_a_finished_run_may_drop_its_checkpoint(tmp_path):
     out = tmp_path / "every"
     run_slam(load_config(preset="quick", overrides=OVERRIDES[:1] + ["data.max_frames=4", "slam.poses=gt",
+                                                                      "slam.init_iters=10",
                                                                       "slam.map_every=1", "mesh.enabled=false",
                                                                       "eval.enabled=false", "slam.checkpoint_every=2",
                                                                       "output.keep_checkpoint=false"]), out)
@@ -116,7 +117,7 @@ def test_a_given_pose_run_resumes_to_the_same_map(gt_run, tmp_path):
     out = tmp_path / "cut"
 
     def stop(i, n, info):
-        if i == 4:
+        if i == 3:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):

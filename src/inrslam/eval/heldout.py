@@ -8,8 +8,29 @@ import numpy as np
 
 from inrslam.eval.image import depth_l1, psnr, ssim
 
+DEPTH_ERROR_MAX = 0.10  # metres: the top of the error colour scale of the panels
 
-def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: int, offset: int = 0) -> dict:
+
+def heldout_panel(gt_rgb: np.ndarray, rgb: np.ndarray, depth: np.ndarray, gt_depth: np.ndarray) -> np.ndarray:
+    """One held-out frame as a picture: observed colour | rendered colour | rendered depth | |depth error|.
+
+    Args: gt_rgb, rgb: (H, W, 3) in [0, 1]; depth, gt_depth: (H, W) metres (gt 0 = no measurement).
+    Returns: (H, 4W, 3) uint8. Depth shares one scale, 0 .. the largest observed depth ('turbo'); the error runs
+    0 .. DEPTH_ERROR_MAX ('magma'); pixels without a measurement are black in the error panel.
+    """
+    from matplotlib import colormaps
+
+    valid = gt_depth > 0
+    top = float(gt_depth[valid].max()) if valid.any() else max(float(np.nanmax(depth)), 1e-6)
+    depth_rgb = colormaps["turbo"](np.clip(np.nan_to_num(depth) / top, 0.0, 1.0))[..., :3]
+    err = np.where(valid, np.abs(np.nan_to_num(depth) - gt_depth), 0.0)
+    err_rgb = colormaps["magma"](np.clip(err / DEPTH_ERROR_MAX, 0.0, 1.0))[..., :3] * valid[..., None]
+    panel = np.concatenate([np.clip(gt_rgb, 0, 1), np.clip(rgb, 0, 1), depth_rgb, err_rgb], axis=1)
+    return (panel * 255.0 + 0.5).astype(np.uint8)
+
+
+def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: int, offset: int = 0,
+                    sink: Callable[[int, np.ndarray], None] | None = None) -> dict:
     """PSNR / SSIM / depth L1 of frames offset, offset + every, ... (at most `max_frames`); an offset between
     keyframes keeps the evaluated frames out of the keyframe ray store.
 
@@ -17,6 +38,7 @@ def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: in
         render: (c2w (4,4) tensor, intrinsics) -> (rgb (H,W,3) in [0,1], depth (H,W) metres), tensors or arrays.
         dataset: the run's dataset (frames give the observed rgb / depth).
         poses: (N, 4, 4) estimated c2w used for rendering (the estimate, not the ground truth).
+        sink: called with (frame index, `heldout_panel` picture) for every rendered frame (to save it).
     Returns:
         dict(psnr_db, ssim, depth_l1_m, heldout_frames).
     """
@@ -30,6 +52,8 @@ def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: in
         ss.append(float(ssim(rgb, frame.rgb)))
         if (frame.depth > 0).any():
             dl.append(float(depth_l1(_np(depth), frame.depth)))
+        if sink is not None:
+            sink(i, heldout_panel(frame.rgb, rgb, _np(depth), frame.depth))
     return {"psnr_db": float(np.mean(ps)) if ps else None, "ssim": float(np.mean(ss)) if ss else None,
             "depth_l1_m": float(np.mean(dl)) if dl else None, "heldout_frames": idx}
 

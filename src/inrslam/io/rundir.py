@@ -39,12 +39,13 @@ class RunDir:
         "trajectory_gt": "trajectory_gt.txt",
         "trajectory_relative": "trajectory_relative.txt",
         "keyframes": "keyframes.json",
+        "trajectory_plot": "trajectory.png",
         "mesh": "mesh.ply",
         "metrics": "metrics.json",
         "checkpoint": "checkpoints/latest.pt",
     }
     SWEEP_FILES = {"bench": "bench.json", "error": "error.txt"}  # written by the sweep worker around a run
-    DIRS = {"meshes": "meshes", "tensorboard": "tensorboard", "checkpoints": "checkpoints"}
+    DIRS = {"meshes": "meshes", "tensorboard": "tensorboard", "checkpoints": "checkpoints", "renders": "renders"}
 
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
@@ -71,6 +72,7 @@ class RunDir:
     trajectory_gt = property(lambda self: self.path("trajectory_gt"))
     trajectory_relative = property(lambda self: self.path("trajectory_relative"))
     keyframes = property(lambda self: self.path("keyframes"))
+    trajectory_plot = property(lambda self: self.path("trajectory_plot"))
     mesh = property(lambda self: self.path("mesh"))
     metrics = property(lambda self: self.path("metrics"))
     checkpoint = property(lambda self: self.path("checkpoint"))
@@ -79,6 +81,12 @@ class RunDir:
     meshes = property(lambda self: self.path("meshes"))
     checkpoints = property(lambda self: self.path("checkpoints"))
     tensorboard = property(lambda self: self.path("tensorboard"))
+
+    renders = property(lambda self: self.path("renders"))
+
+    def render_at(self, frame: int) -> Path:
+        """renders/frame_NNNNNN.png: held-out frame `frame`, observed | rendered colour | depth | depth error."""
+        return self.renders / f"frame_{frame:06d}.png"
 
     def mesh_at(self, frame: int) -> Path:
         """Intermediate mesh after `frame` (slam.mesh_every)."""
@@ -148,9 +156,10 @@ class RunDir:
         return merged
 
     def remove_stale_temporaries(self) -> list[Path]:
-        """Delete the temporary files of atomic writes a killed process left in the run folder, checkpoints/ and
-        meshes/ (`inrslam.io.atomic.temporary_files`); returns what was removed."""
-        gone = [p for folder in (self.root, self.checkpoints, self.meshes) for p in temporary_files(folder)]
+        """Delete the temporary files of atomic writes a killed process left in the run folder, checkpoints/,
+        meshes/ and renders/ (`inrslam.io.atomic.temporary_files`); returns what was removed."""
+        folders = (self.root, self.checkpoints, self.meshes, self.renders)
+        gone = [p for folder in folders for p in temporary_files(folder)]
         for p in gone:
             p.unlink(missing_ok=True)
         return gone

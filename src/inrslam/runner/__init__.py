@@ -7,6 +7,8 @@ import dataclasses
 import os
 from pathlib import Path
 
+import numpy as np
+
 from inrslam.config.loader import dump_config, load_config
 from inrslam.errors import ConfigError, RunError
 from inrslam.io.atomic import write_text
@@ -93,11 +95,17 @@ def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
     if ev.enabled and ev.heldout_every:
         # frames between keyframes (offset by half the mapping period), rendered without jitter
         render = lambda c2w, intr: system.model.render_image(c2w, intr, n_coarse=ev.heldout_samples)
+        sink = writer.write_render if system.cfg.output.renders else None
         with writer.step("held-out renders"):
             metrics.update(heldout_metrics(render, system.dataset, system.est, ev.heldout_every, ev.heldout_max,
-                                           offset=system.cfg.slam.map_every // 2))
+                                           offset=system.cfg.slam.map_every // 2, sink=sink))
     rd.write_metrics(metrics)
     writer.write_run_info("slam_done")
+    if system.cfg.output.renders and np.isfinite(system.state.gt).all(axis=(1, 2)).any():
+        from inrslam.eval.trajectory_plot import plot_trajectory
+
+        with writer.step("trajectory plot"):
+            plot_trajectory(system.state.est.double().cpu().numpy(), system.state.gt, rd.trajectory_plot)
     if ev.enabled:
         with writer.step("evaluation"):
             evaluate_run(rd.root, ev)

@@ -152,6 +152,15 @@ class RunWriter:
             with atomic_path(path) as tmp:
                 mesh.export(tmp)
 
+    def write_render(self, frame: int, picture: np.ndarray) -> None:
+        """renders/frame_NNNNNN.png (atomic): a held-out frame's (H, 4W, 3) uint8 panel (eval.heldout.heldout_panel)."""
+        from PIL import Image
+
+        path = self.rd.render_at(frame)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            Image.fromarray(picture).save(tmp, format="PNG")
+
     def write_run_info(self, status: str) -> None:
         """run_info.json: status, dataset (absolute paths), intrinsics, bounds, keyframes, versions, device, threads and
         their OpenMP wait policy."""

@@ -132,4 +132,5 @@ class OutputConfig:
 
     tensorboard: bool = True  # TensorBoard scalars when tensorboard is installed
     keep_checkpoint: bool = True  # keep checkpoints/ of a finished run (false: delete it once the run is complete)
+    renders: bool = True  # renders/ (each held-out frame: observed, rendered, depth, error) and trajectory.png
 
