@@ -168,12 +168,6 @@ def _check_device(cfg) -> None:
     resolve_device(cfg.device)
 
 
-def _absolute_paths(cfg):
-    from inrslam.api import absolute_paths
-
-    return absolute_paths(cfg)
-
-
 def _check_resumable_data(run_dir: str) -> None:
     """ConfigError when the run's config.yaml names its dataset folder by a relative path that does not exist from
     here (runs made before paths were recorded absolute)."""
@@ -196,6 +190,7 @@ def _check_resumable_data(run_dir: str) -> None:
 def _run_command(args) -> int:
     from rich.console import Console
 
+    from inrslam.api import absolute_paths
     from inrslam.config.loader import load_config
     from inrslam.runner import resume_slam, run_slam
 
@@ -224,7 +219,7 @@ def _run_command(args) -> int:
             val = getattr(args, flag)
             if val is not None:
                 ov.append(f"{key}={val}")
-        cfg = _absolute_paths(load_config(args.config, preset=args.preset, overrides=ov))
+        cfg = absolute_paths(load_config(args.config, preset=args.preset, overrides=ov))
         _check_registry_names(cfg)
         _check_device(cfg)
         progress_cb, finish = _progress(console, quiet=args.quiet)

@@ -151,7 +151,7 @@ def trajectory_metrics(
     return out
 
 
-def _associated_gt(ts_est: np.ndarray, ts_gt: np.ndarray, gt: np.ndarray, max_diff: float) -> np.ndarray:
+def associated_gt(ts_est: np.ndarray, ts_gt: np.ndarray, gt: np.ndarray, max_diff: float) -> np.ndarray:
     """(N, 4, 4) GT pose of each estimated frame (NaN where no GT timestamp is within max_diff)."""
     ia, ib = associate(ts_est, ts_gt, max_diff)
     full = np.full((len(ts_est), 4, 4), np.nan)
@@ -277,7 +277,7 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
     ts_est, est = read_tum(est_path)
     res["frames"] = int(len(est))
     if gt_cams is not None:
-        gt_full = _associated_gt(ts_est, ts_gt, gt, cfg.max_time_diff)
+        gt_full = associated_gt(ts_est, ts_gt, gt, cfg.max_time_diff)
         rows = _keyframe_rows(run_dir, run_info, ts_est, cfg.max_time_diff, notes)
         res.update(trajectory_metrics(est, gt_full, rows, cfg.align, cfg.rpe_delta))
         if res["ate_n_used"] == 0:
@@ -285,7 +285,7 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
         rel_path = rd.trajectory_relative
         if rel_path.is_file():  # docs/spec.md §7.6: non-keyframes carried along by their keyframe's refinement
             ts_rel, est_rel = read_tum(rel_path)
-            rel_gt = _associated_gt(ts_rel, ts_gt, gt, cfg.max_time_diff)
+            rel_gt = associated_gt(ts_rel, ts_gt, gt, cfg.max_time_diff)
             res["ate_relative_rmse_m"] = trajectory_metrics(est_rel, rel_gt, None, cfg.align, cfg.rpe_delta)[
                 "ate_rmse_m"]
     else:

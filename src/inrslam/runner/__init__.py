@@ -7,8 +7,6 @@ import dataclasses
 import os
 from pathlib import Path
 
-import numpy as np
-
 from inrslam.config.loader import dump_config, load_config
 from inrslam.errors import ConfigError, RunError
 from inrslam.io.atomic import write_text
@@ -101,11 +99,6 @@ def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
                                            offset=system.cfg.slam.map_every // 2, sink=sink))
     rd.write_metrics(metrics)
     writer.write_run_info("slam_done")
-    if system.cfg.output.renders and np.isfinite(system.state.gt).all(axis=(1, 2)).any():
-        from inrslam.eval.trajectory_plot import plot_trajectory
-
-        with writer.step("trajectory plot"):
-            plot_trajectory(system.state.est.double().cpu().numpy(), system.state.gt, rd.trajectory_plot)
     if ev.enabled:
         with writer.step("evaluation"):
             evaluate_run(rd.root, ev)

@@ -99,6 +99,7 @@ def _tum(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
 def load_run(run_dir: str | os.PathLike) -> LoadedRun:
     """Read a run directory (read-only). RunError naming the folder when it holds no run."""
     from inrslam.config import load_config
+    from inrslam.eval.run import associated_gt
 
     rd = RunDir(run_dir)
     if not rd.config.is_file() or not rd.run_info.is_file():
@@ -109,13 +110,12 @@ def load_run(run_dir: str | os.PathLike) -> LoadedRun:
         raise RunError(f"{rd.root}: no trajectory.txt yet (the run has not finished; inrslam run --resume "
                        f"{rd.root} continues it)")
     ts, est = traj
+    cfg = load_config(rd.config, preset=None, check_variants=False)
     gt = _tum(rd.trajectory_gt)
     rel = _tum(rd.trajectory_relative)
-    gt_poses = None
-    if gt is not None:  # on the estimate's timestamps (frames without GT: NaN)
-        by_ts = {round(float(t), 6): T for t, T in zip(*gt)}
-        gt_poses = np.stack([by_ts.get(round(float(t), 6), np.full((4, 4), np.nan)) for t in ts])
+    # on the estimate's timestamps (frames without GT: NaN), associated as the evaluation does
+    gt_poses = associated_gt(ts, gt[0], gt[1], cfg.eval.max_time_diff) if gt is not None else None
     kf = (rd.read_json("keyframes") or {}).get("keyframes", []) if rd.keyframes.is_file() else []
-    return LoadedRun(root=rd.root, config=load_config(rd.config, preset=None, check_variants=False), run_info=info,
-                     metrics=rd.read_metrics(), timestamps=ts, est=est, gt=gt_poses,
+    return LoadedRun(root=rd.root, config=cfg, run_info=info, metrics=rd.read_metrics(), timestamps=ts, est=est,
+                     gt=gt_poses,
                      relative=rel[1] if rel is not None else None, keyframes=list(kf), _rd=rd)

@@ -205,7 +205,7 @@ class RunWriter:
 
     # -- end -------------------------------------------------------------------------------------------------------
     def finish(self) -> dict:
-        """Final checkpoint, trajectories, keyframes.json and mesh.ply; returns the process metrics (the caller
+        """Final checkpoint, trajectories (and trajectory.png), keyframes.json and mesh.ply; returns the process metrics (the caller
         adds what it evaluates and writes metrics.json once)."""
         self.checkpoint()
         wall_s = self.wall_s()
@@ -216,6 +216,11 @@ class RunWriter:
                   header="inrslam estimated c2w, non-keyframes relative to their refined keyframe (spec 7.6)")
         if np.isfinite(res.gt).all(axis=(1, 2)).any():
             write_tum(rd.trajectory_gt, res.timestamps, res.gt, header="ground-truth c2w (OpenCV axes)")
+            if self.cfg.output.renders:
+                from inrslam.eval.trajectory_plot import plot_trajectory
+
+                with self.step("trajectory plot"):
+                    plot_trajectory(res.est, res.gt, rd.trajectory_plot)
         write_json(rd.keyframes, {"keyframes": res.keyframes})
         if self.cfg.mesh.enabled:
             with self.step("mesh extraction"):

@@ -204,10 +204,7 @@ class SlamSystem:
                 c2w, loss, fallback, iters = pred, float("nan"), None, 0
         track_ms = (time.perf_counter() - t0) * 1e3
         self.state.track_ms.append(track_ms)
-        self.est[i] = c2w
-        kf = self.store.frame_ids[-1]
-        self.state.rel[i] = torch.linalg.inv(self.est[kf]) @ c2w
-        self.state.rel_kf[i] = kf
+        self._set_pose(i, c2w)
         fallback = _joined(extra.pop("init_fallback", None), extra.pop("sdf_fallback", None), fallback)
         rec = {"type": "track", "frame": i, "loss": loss, "track_ms": track_ms, "iters": iters, **extra}
         if fallback:
@@ -217,14 +214,17 @@ class SlamSystem:
         if i % cfg.map_every == 0:
             self._map(i, ft)
 
-    def _place_given(self, i: int, ft: FrameTensors) -> None:
-        """Mapping only: frame i takes its given pose (no tracking), then maps every `map_every`-th frame."""
-        assert self.given is not None
-        c2w = torch.as_tensor(self.given.c2w[i], dtype=torch.float32, device=self.device)
+    def _set_pose(self, i: int, c2w: torch.Tensor) -> None:
+        """Frame i's pose, and the same pose relative to the last keyframe (docs/spec.md §7.6)."""
         self.est[i] = c2w
         kf = self.store.frame_ids[-1]
         self.state.rel[i] = torch.linalg.inv(self.est[kf]) @ c2w
         self.state.rel_kf[i] = kf
+
+    def _place_given(self, i: int, ft: FrameTensors) -> None:
+        """Mapping only: frame i takes its given pose (no tracking), then maps every `map_every`-th frame."""
+        assert self.given is not None
+        self._set_pose(i, torch.as_tensor(self.given.c2w[i], dtype=torch.float32, device=self.device))
         self._log({"type": "pose", "frame": i, "source": self.given.source["source"]})
         if i % self.cfg.slam.map_every == 0:
             self._map(i, ft)
