@@ -101,7 +101,7 @@ class SlamSystem:
         # mapping only (slam.poses): every frame's pose is given, nothing is tracked, poses stay fixed
         self.given: GivenPoses | None = (load_given_poses(sc.poses, dataset, sc.poses_tolerance, sc.poses_anchor)
                                          if sc.poses else None)
-        self.model = SceneModel(cfg, self.bounds).to(self.device)
+        self.model = self._make_model().to(self.device)
         self.state = SlamState.fresh(self.model, self.model.make_optimizers(cfg.slam.map_lr),
                                      KeyframeStore(device=self.device), torch.Generator().manual_seed(cfg.seed),
                                      self.n_frames, self.device)
@@ -111,6 +111,10 @@ class SlamSystem:
         self._target_cloud: tuple[int, PreparedCloud] | None = None
         self._local_target: tuple[tuple[int, ...], PreparedCloud] | None = None
         self._kf_points: dict[int, np.ndarray] = {}
+
+    def _make_model(self) -> SceneModel:
+        """The map the loop trains (a subclass with another mapper may return its own `SceneModel` subclass)."""
+        return SceneModel(self.cfg, self.bounds)
 
     # -- shorthands of the state --------------------------------------------------------------------------------
     @property
@@ -145,9 +149,14 @@ class SlamSystem:
         return self
 
     def progress_info(self, i: int) -> dict:
-        """What a progress display may show: last tracking time, and the trajectory so far with its GT."""
+        """What a progress display or live viewer may show: last tracking time, the trajectory so far (N, 4, 4) with
+        its GT, the keyframe ids, and `mesh(resolution)`: a marching-cubes mesh of the current map at `resolution`
+        metres (None if empty; logs nothing, changes nothing the run saves)."""
         s = self.state
-        return {"track_ms": s.track_ms[-1] if s.track_ms else 0.0, "est": s.est[: i + 1], "gt": s.gt[: i + 1]}
+        m = self.cfg.mesh
+        return {"track_ms": s.track_ms[-1] if s.track_ms else 0.0, "est": s.est[: i + 1], "gt": s.gt[: i + 1],
+                "keyframes": list(s.store.frame_ids),
+                "mesh": lambda resolution: extract_mesh(self.model.field, self.bounds, resolution, m.chunk, m.color)}
 
     def _log(self, record: dict) -> None:
         self._records.append(record)
