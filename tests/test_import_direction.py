@@ -22,7 +22,7 @@ LAYERS = [
     {"config"},
     {"datasets"},
     {"runner"},
-    {"bench"},
+    {"bench", "viewer"},
     {"api"},
     {"cli"},
     {"__main__"},

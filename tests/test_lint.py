@@ -12,7 +12,7 @@ import pytest
 
 import inrslam
 
-LINTED = ["slam", "rendering", "config", "io"]
+LINTED = ["slam", "rendering", "config", "io", "viewer"]
 
 
 def test_ruff_is_clean_on_the_linted_packages():

@@ -6,6 +6,7 @@
     inrslam bench SPEC.yaml --out DIR [--jobs N] [--executor local|ray|slurm]
     inrslam report RUNS_DIR
     inrslam export SCENE --layout replica|tum --out DIR
+    inrslam view RUN_DIR [RUN_DIR ...] [--port P]
 
 Errors a user can fix print one line `inrslam COMMAND: error: ...` and exit 2; Ctrl-C prints how to resume and exits
 130; `bench` exits 1 when some runs failed (docs/reliability.md).
@@ -28,6 +29,8 @@ EXIT_ERROR = 2  # a user-fixable error (one line on stderr)
 EXIT_RUNS_FAILED = 1  # `bench`: the sweep went through but some runs failed
 EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT), as shells report it
 DEVICE_RE = re.compile(r"auto|cpu|cuda(:\d+)?")
+VIEWER_PORT = 8080
+VIEWER_HOST = "127.0.0.1"
 OVERRIDE_RE = re.compile(r"[A-Za-z_][\w.]*=.*", re.S)  # a config override KEY=VALUE
 
 
@@ -80,6 +83,12 @@ def build_parser(registry_help: bool = True) -> argparse.ArgumentParser:
     r.add_argument("--resume", metavar="DIR", help="continue an interrupted run directory from its last checkpoint")
     r.add_argument("--overwrite", action="store_true", help="replace an existing run in --out")
     r.add_argument("--quiet", action="store_true", help="no progress bar or table")
+    r.add_argument("--viewer", action="store_true", help="live view in the browser while the run goes (needs the "
+                   "extra inrslam[viewer]; docs/viewer.md); in a terminal the finished run stays on view until Ctrl-C")
+    r.add_argument("--viewer-port", type=int, default=VIEWER_PORT, help=f"port of --viewer (default {VIEWER_PORT})")
+    r.add_argument("--viewer-host", default=VIEWER_HOST, help=f"address --viewer listens on (default {VIEWER_HOST})")
+    r.add_argument("--viewer-mesh-every", type=int, default=20,
+                   help="frames between two meshes of the live map (0 = none; default 20)")
     r.add_argument("overrides", nargs="*", help="config overrides KEY=VALUE")
 
     sub.add_parser("scenes", help="list the built-in scenes")
@@ -122,6 +131,18 @@ def build_parser(registry_help: bool = True) -> argparse.ArgumentParser:
     rep = sub.add_parser("report", help="aggregate run directories into leaderboards, plots and an HTML report")
     rep.add_argument("runs_dir", help="folder containing run directories")
     rep.add_argument("--out", help="report folder (default RUNS_DIR/report)")
+
+    v = sub.add_parser("view", help="show run directories in the browser (mesh, trajectories, renders, metrics)",
+                       description="Serve a browser viewer (viser) of one or more run directories: mesh (with the "
+                                   "intermediate meshes as a timeline), estimated and ground-truth trajectories, "
+                                   "keyframe frusta, the held-out renders and the metrics; several runs side by side "
+                                   "with a comparison table. Needs the extra inrslam[viewer]; see docs/viewer.md.")
+    v.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories (inrslam run --out)")
+    v.add_argument("--port", type=int, default=VIEWER_PORT, help=f"port (default {VIEWER_PORT}; the next free one "
+                                                                   "if taken)")
+    v.add_argument("--host", default=VIEWER_HOST, help=f"address to listen on (default {VIEWER_HOST}: this machine "
+                                                        "only, reach it through an SSH tunnel; 0.0.0.0: every "
+                                                        "interface)")
 
     x = sub.add_parser("export", help="write a built-in scene in the Replica or TUM RGB-D folder layout",
                        description="Render a built-in scene (`inrslam scenes`) and write it as a dataset folder that "
@@ -195,6 +216,7 @@ def _run_command(args) -> int:
     from inrslam.runner import resume_slam, run_slam
 
     console = Console(stderr=False)
+    live = None
     if args.resume:
         given = [f"--{k.replace('_', '-')}" for k in ("data", "out", "encoding", "render", "max_frames", "config",
                                                       "dataset", "device", "seed", "poses")
@@ -203,7 +225,9 @@ def _run_command(args) -> int:
             raise InrslamError(f"inrslam run --resume continues a run with its own config.yaml; do not combine it "
                                f"with {', '.join(given + list(args.overrides))}")
         _check_resumable_data(args.resume)
+        live = _start_live_viewer(args, console) if args.viewer else None
         progress_cb, finish = _progress(console, quiet=args.quiet)
+        progress_cb = _chain(progress_cb, live)
         try:
             run_dir = resume_slam(args.resume, progress=progress_cb)
         finally:
@@ -222,13 +246,72 @@ def _run_command(args) -> int:
         cfg = absolute_paths(load_config(args.config, preset=args.preset, overrides=ov))
         _check_registry_names(cfg)
         _check_device(cfg)
+        live = _start_live_viewer(args, console) if args.viewer else None
         progress_cb, finish = _progress(console, quiet=args.quiet)
+        progress_cb = _chain(progress_cb, live)
         try:
             run_dir = run_slam(cfg, args.out, progress=progress_cb, overwrite=args.overwrite)
         finally:
             finish()
     if not args.quiet:
         _print_metrics(console, run_dir)
+    if live is not None:
+        _keep_viewing(live.server, run_dir, console)
+    return 0
+
+
+def _chain(*callbacks):
+    """One progress callback calling each of `callbacks` that is not None (None if there is none)."""
+    cbs = [cb for cb in callbacks if cb is not None]
+    if not cbs:
+        return None
+
+    def cb(i: int, n: int, info: dict) -> None:
+        for f in cbs:
+            f(i, n, info)
+
+    return cb
+
+
+def _start_live_viewer(args, console):
+    """`inrslam run --viewer`: a server and the `LiveViewer` progress callback drawing on it."""
+    from inrslam.viewer.live import LiveViewer
+    from inrslam.viewer.server import start_server, url_lines
+
+    server = start_server(args.viewer_host, args.viewer_port)
+    for line in url_lines(args.viewer_host, server.get_port()):
+        console.print(line, highlight=False)
+    return LiveViewer(server, mesh_every=args.viewer_mesh_every)
+
+
+def _keep_viewing(server, run_dir: Path, console) -> None:
+    """After `run --viewer`: the finished run replaces the live view, served until Ctrl-C when the command runs in
+    a terminal (a script or background job just ends, as it would without --viewer)."""
+    from inrslam.runner.loaded import load_run
+    from inrslam.viewer.server import show_runs, stop_server
+
+    if sys.stdin is None or not sys.stdin.isatty():
+        stop_server(server)
+        return
+    viewer = show_runs(server, [load_run(run_dir)])
+    console.print(f"viewer: showing the finished run at http://localhost:{viewer.port}; Ctrl-C to exit",
+                  highlight=False)
+    viewer.wait()
+
+
+def _view_command(args) -> int:
+    from inrslam.runner.loaded import load_run
+    from inrslam.viewer.server import require_viser, serve, url_lines
+
+    runs = [load_run(d) for d in args.run_dirs]
+    require_viser()
+    viewer = serve(runs, host=args.host, port=args.port)
+    for line in url_lines(args.host, viewer.port):
+        print(line)
+    for k, c in enumerate(viewer.contents):
+        print(f"  /run{k}: {c.root}" + (f" ({'; '.join(c.notes)})" if c.notes else ""))
+    print("Ctrl-C to stop", flush=True)
+    viewer.wait()
     return 0
 
 
@@ -437,7 +520,7 @@ def _export_command(args) -> int:
 
 
 COMMANDS = {"run": _run_command, "scenes": _scenes_command, "config": _config_command, "eval": _eval_command,
-            "bench": _bench_command, "report": _report_command, "export": _export_command}
+            "bench": _bench_command, "report": _report_command, "export": _export_command, "view": _view_command}
 
 
 def _interrupted_message(args) -> str:

@@ -13,8 +13,7 @@ from PIL import Image
 
 from inrslam.geometry.pinhole import backproject_np, project_np
 from inrslam.io.trajectory import read_tum
-from inrslam.scenes import (DEFAULT_SCENE, SceneConfig, export_replica, export_tum, list_scenes, load_scene)
-from inrslam.scenes import store
+from inrslam.scenes import DEFAULT_SCENE, SceneConfig, export_replica, export_tum, list_scenes, load_scene, store
 from inrslam.scenes.layouts import SCENES
 from inrslam.scenes.sensor import hole_mask
 from inrslam.scenes.trajectory import camera_poses, dense_loop
@@ -320,3 +319,30 @@ def test_export_tum_layout(room, tmp_path):
     assert len(entries("groundtruth.txt")) == n
     np.testing.assert_allclose(ts, t_rgb, atol=1e-6)
     np.testing.assert_allclose(poses, room.poses, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["loop", "symmetric"])
+def test_loop_scenes_go_once_around_and_come_back(name):
+    layout = SCENES.get(name)(0)
+    mesh, room = layout.geometry.mesh, layout.geometry.room
+    assert layout.default_frames >= 300
+    assert distance_to_mesh(dense_loop(layout.path, 400), mesh, max_dist=1.0).min() >= 0.4
+    poses = camera_poses(layout.path, layout.default_frames)
+    t = poses[:, :3, 3]
+    assert np.all((t > room[:, 0] + 0.4) & (t < room[:, 1] - 0.4))
+    pts = dense_loop(layout.path)
+    length = np.linalg.norm(np.diff(np.vstack([pts, pts[:1]]), axis=0), axis=1).sum()
+    travelled = np.linalg.norm(np.diff(t, axis=0), axis=1).sum()
+    assert travelled == pytest.approx(1.06 * length, rel=0.03)  # once around, and a little on
+    assert np.linalg.norm(t[-20:, None] - t[None, :20], axis=-1).min() < 0.05  # the end revisits the start
+    # faster segments: the per-frame step varies by +-40 %
+    step = np.linalg.norm(np.diff(t, axis=0), axis=1)
+    assert step.max() > 1.25 * step.mean() and step.min() < 0.75 * step.mean()
+
+
+def test_symmetric_scene_is_identical_under_quarter_turns():
+    mesh = SCENES.get("symmetric")(0).geometry.mesh
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    turned = mesh.vertices @ quarter.T
+    # every turned vertex lies on the original geometry (the posters' thickness aside)
+    assert distance_to_mesh(turned[:: max(1, len(turned) // 2000)], mesh, max_dist=0.1).max() < 0.02

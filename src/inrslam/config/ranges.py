@@ -73,12 +73,27 @@ RANGES: dict[str, Rule] = {
     "slam.sdf_track.tol_rot": POS, "slam.sdf_track.damping": NONNEG, "slam.sdf_track.max_step": POS,
     "slam.lost.factor": above(1), "slam.lost.window": COUNT, "slam.lost.recover_max_corr": POS,
     "slam.lost.stop_after": NONNEG,
+    "slam.loop.min_gap": COUNT, "slam.loop.max_dist": POS, "slam.loop.max_angle": POS,
+    "slam.loop.min_overlap": FRACTION, "slam.loop.overlap_tol": POS, "slam.loop.candidates": COUNT,
+    "slam.loop.corr_stages": POS, "slam.loop.min_fitness": FRACTION, "slam.loop.max_correction": NONNEG,
+    "slam.loop.max_correction_per_m": NONNEG, "slam.loop.max_correction_angle": POS, "slam.loop.consistency": POS,
+    "slam.loop.refit_min_move": NONNEG, "slam.loop.odom_sigma_t": POS, "slam.loop.odom_sigma_r": POS,
+    "slam.loop.loop_sigma_t": POS, "slam.loop.loop_sigma_r": POS, "slam.loop.huber": NONNEG,
+    "slam.loop.refit_iters": NONNEG, "slam.loop.refit_pixels": COUNT,
     # outputs, evaluation
     "mesh.resolution": at_least(0.001), "mesh.chunk": COUNT,
     "eval.max_time_diff": NONNEG, "eval.rpe_delta": COUNT, "eval.cull_every": COUNT, "eval.cull_eps": NONNEG,
     "eval.n_samples": COUNT, "eval.threshold": POS, "eval.heldout_every": NONNEG, "eval.heldout_max": NONNEG,
     "eval.heldout_samples": at_least(2),
     "threads": NONNEG,
+    # the EHE mapper (docs/ehe.md)
+    "ehe.voxel_size": POS, "ehe.min_points": NONNEG, "ehe.margin": between(0.0, 0.5), "ehe.max_vertices": COUNT,
+    "ehe.point_stride": COUNT, "ehe.fine_cell": POS, "ehe.feature_dim": COUNT, "ehe.hidden_dim": COUNT,
+    "ehe.grid_init": NONNEG, "ehe.truncation": POS, "ehe.step": POS, "ehe.max_hits": COUNT, "ehe.max_depth": POS,
+    "ehe.depth_min": NONNEG, "ehe.depth_max": POS, "ehe.rays": COUNT, "ehe.iters": NONNEG, "ehe.first_iters": NONNEG,
+    "ehe.window": NONNEG, "ehe.random_fraction": FRACTION, "ehe.kf_overlap": FRACTION, "ehe.kf_max_gap": COUNT,
+    "ehe.kf_ray_fraction": between(0.0, 1.0, open_lo=True), "ehe.lr": POS, "ehe.color_weight": NONNEG,
+    "ehe.depth_weight": NONNEG, "ehe.free_space_weight": NONNEG, "ehe.sdf_weight": NONNEG, "ehe.mesh_samples": COUNT,
 }
 
 
@@ -104,9 +119,14 @@ def check_ranges(cfg: Any, sources: dict[str, str]) -> None:
             if isinstance(v, float) and not math.isfinite(v):
                 raise fail(key, value, "a finite number")
         rule = RANGES.get(key)
-        if rule is not None and value is not None and not rule[0](value):
+        if rule is not None and isinstance(value, list) and not value:
+            raise fail(key, value, f"a list of at least one number {rule[1]}")
+        if rule is not None and value is not None and not all(rule[0](v) for v in values):
             kind = "an integer" if isinstance(value, int) else "a number"
-            raise fail(key, value, f"{kind} {rule[1]}")
+            raise fail(key, value, f"{kind} {rule[1]}" if not isinstance(value, list) else f"numbers {rule[1]}")
+    e = getattr(cfg, "ehe", None)
+    if e is not None and not e.depth_min < e.depth_max:
+        raise fail("ehe.depth_min", e.depth_min, f"a number below ehe.depth_max ({e.depth_max:g})")
     s = getattr(cfg, "sampling", None)
     if s is not None and s.n_free + s.n_surface == 0:
         raise fail("sampling.n_surface", 0, "at least one sample per ray with depth (n_free + n_surface >= 1)")

@@ -10,6 +10,7 @@ from inrslam.eval.config import EvalConfig
 from inrslam.fields.config import FieldConfig
 from inrslam.rendering.config import LossConfig, RenderConfig, SamplingConfig
 from inrslam.slam.config import MeshConfig, OutputConfig, SlamConfig
+from inrslam.slam.ehe.config import EheConfig
 
 
 @dataclass
@@ -25,6 +26,8 @@ class RunConfig:
     mesh: MeshConfig = _field(default_factory=MeshConfig)
     eval: EvalConfig = _field(default_factory=EvalConfig)
     output: OutputConfig = _field(default_factory=OutputConfig)
+    mapper: str = "neural"  # the loop: neural (F x G of field/render, tracking or given poses) | ehe (docs/ehe.md)
+    ehe: EheConfig = _field(default_factory=EheConfig)  # Explicit Hybrid Encoding mapper (used when mapper is ehe)
     seed: int = 0  # seed of every random choice (pixels, jitter, initialisation)
     device: str = "auto"  # auto (cuda if available), cpu, cuda, cuda:N
     threads: int = 0  # torch/numba threads (0 = all cores)

@@ -49,6 +49,7 @@ VARIANTS: tuple[Variant, ...] = (
     Variant("data.tum", "data.dataset", "tum"),
     Variant("data.neuralrgbd", "data.dataset", "neuralrgbd"),
     Variant("data.sevenscenes", "data.dataset", "7scenes"),
+    Variant("ehe", "mapper", "ehe"),
 )
 
 

@@ -13,6 +13,7 @@ from inrslam.io.atomic import write_text
 from inrslam.io.rundir import RunDir
 from inrslam.runner.writer import RunWriter
 from inrslam.slam.system import Progress, SlamSystem
+from inrslam.slam.systems import system_class
 
 
 def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, overwrite: bool = False,
@@ -38,7 +39,7 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, 
     dataset = open_dataset(cfg.data)
     threads = resolve_threads(cfg.threads or threads or 0)
     with thread_scope(threads):
-        system = SlamSystem(cfg, dataset)
+        system = system_class(cfg)(cfg, dataset)
         out.mkdir(parents=True, exist_ok=True)
         # the resolved config, with the thread count used: `--config` reproduces the run (docs/reliability.md)
         write_text(rd.config, dump_config(dataclasses.replace(cfg, threads=threads)))
@@ -59,7 +60,7 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
     threads = _recorded_threads(run_dir) if not cfg.threads else None
     threads = threads or resolve_threads(cfg.threads)
     with thread_scope(threads):
-        system = SlamSystem(cfg, dataset)
+        system = system_class(cfg)(cfg, dataset)
         return _drive(system, RunWriter(system, rd, threads), resume=True, progress=progress)
 
 

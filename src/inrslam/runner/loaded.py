@@ -51,14 +51,14 @@ class LoadedRun:
     def model(self):
         """The trained scene model F x G from `checkpoints/latest.pt` (CPU, eval mode). RunError without one."""
         from inrslam.runner.checkpoint import load_checkpoint
-        from inrslam.slam.model import SceneModel
+        from inrslam.slam.systems import model_class
 
         ckpt = self._rd.checkpoint
         if not ckpt.is_file():
             raise RunError(f"{ckpt}: no checkpoint, so no map to render (runs made with "
                            "output.keep_checkpoint=false keep none)")
         state = load_checkpoint(ckpt)
-        model = SceneModel(self.config, np.asarray(self.run_info["bounds"], dtype=np.float64))
+        model = model_class(self.config)(self.config, np.asarray(self.run_info["bounds"], dtype=np.float64))
         try:
             model.load_state_dict(state["model"])
         except (KeyError, RuntimeError) as e:

@@ -7,5 +7,5 @@ from inrslam.data.config import SceneConfig
 
 __all__ = ["DEFAULT_SENSOR", "SceneConfig"]
 
-DEFAULT_SENSOR = {"handheld": (0.004, 0.05)}
+DEFAULT_SENSOR = {"handheld": (0.004, 0.05), "loop": (0.004, 0.05), "symmetric": (0.004, 0.05)}
 """(depth noise std at 1 m in metres, fraction of depth holes) of a scene when `SceneConfig` leaves them None."""

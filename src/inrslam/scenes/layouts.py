@@ -7,6 +7,7 @@ the lowest camera height; checked exactly in the tests).
 
 from __future__ import annotations
 
+import dataclasses
 import zlib
 from dataclasses import dataclass
 from typing import Callable
@@ -17,7 +18,7 @@ from inrslam.registry import Registry
 from inrslam.scenes import furniture as fur
 from inrslam.scenes.geometry import GeometryBuilder, SceneGeometry
 from inrslam.scenes.textures import Material
-from inrslam.scenes.trajectory import LoopPath, random_loop
+from inrslam.scenes.trajectory import LoopPath, dense_loop, random_loop
 
 
 @dataclass
@@ -33,7 +34,9 @@ class SceneLayout:
 SceneBuilder = Callable[[int], SceneLayout]
 SCENES: Registry[SceneBuilder] = Registry("scene")
 
-DEFAULT_FRAMES = {"room": 200, "cluttered": 300, "thin": 200, "handheld": 200}
+DEFAULT_FRAMES = {"room": 200, "cluttered": 300, "thin": 200, "handheld": 200, "loop": 320, "symmetric": 320}
+LOOP_COVER = 1.06
+"""Loops per sequence of the `loop` and `symmetric` scenes at their default length: once around, and a little on."""
 """Sequence length of each scene when `SceneConfig.frames` is 0."""
 
 
@@ -183,6 +186,51 @@ def build_handheld(seed: int) -> SceneLayout:
     swinging +-80 degrees around the inward heading so that some views face a wall; sensor noise by default."""
     return _furnished_room(seed, "handheld", dict(speed=0.035, speed_var=0.5, speed_period=60.0, yaw_amp=0.9,
                                                  yaw_period=6.0, pitch_amp=0.15, roll_amp=0.05))
+
+
+@SCENES.register("loop", help="room-like, once around and back to the start in 320 frames (~1.8 cm / frame, faster "
+                              "segments, wall views, depth noise and holes): the loop-closure scene")
+def build_loop(seed: int) -> SceneLayout:
+    """A furnished room like `room`; the camera swings like `handheld`'s at half its speed and goes once around
+    the loop (LOOP_COVER loops in the default 320 frames), so the end revisits the start."""
+    layout = _furnished_room(seed, "loop", dict(speed_var=0.4, speed_period=80.0, yaw_amp=0.8, yaw_period=5.0,
+                                               pitch_amp=0.15, roll_amp=0.05))
+    return _once_around(layout)
+
+
+@SCENES.register("symmetric", help="square room with four identical walls, corners and posters (4-fold symmetric), "
+                                   "once around in 320 frames: the false-loop scene")
+def build_symmetric(seed: int) -> SceneLayout:
+    """A 4 x 4 x 2.6 m room, symmetric under quarter turns: the same wall finish and poster on every wall, the same
+    box stack in every corner, a square table in the middle. Every view has a twin a quarter turn away, so a loop
+    detector that trusted appearance alone would close false loops."""
+    rng = scene_rng(seed, "symmetric")
+    room = np.array([[-2.0, 2.0], [-2.0, 2.0], [0.0, 2.6]])
+    wall = Material("brick", tint=(0.78, 0.5, 0.4), contrast=1.0, tile=(1.0, 1.0))
+    b = GeometryBuilder(room)
+    b.add_room(floor=Material("gravel", tint=(0.56, 0.46, 0.36), contrast=1.2, tile=(0.8, 0.8)),
+               ceiling=Material("gravel", tint=(0.92, 0.92, 0.9), contrast=0.15, tile=(1.5, 1.5)),
+               walls=[wall] * 4)
+    box = Material("coins", tint=(0.8, 0.8, 0.85), contrast=1.2, tile=(0.3, 0.3))
+    top = Material("colorwheel", tile=(0.25, 0.25))
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            b.add_box_on((1.6 * sx, 1.6 * sy), 0.0, (0.5, 0.5, 0.6), box)
+            b.add_box_on((1.6 * sx, 1.6 * sy), 0.6, (0.3, 0.3, 0.3), top)
+    b.add_box_on((0.0, 0.0), 0.0, (0.8, 0.8, 0.75), _wood(rng))
+    for w in ("-x", "+x", "-y", "+y"):
+        fur.poster(b, w, 0.0, 1.5, 0.7, 0.7, "astronaut")
+    path = random_loop(rng, (0.0, 0.0), (1.0, 1.0), (1.4, 1.75), (0.0, 0.0, 0.8), speed_var=0.4, speed_period=80.0,
+                       yaw_amp=0.6, yaw_period=5.0)
+    return _once_around(SceneLayout("symmetric", b.build(), path, default_frames=DEFAULT_FRAMES["symmetric"]))
+
+
+def _once_around(layout: SceneLayout) -> SceneLayout:
+    """`layout` with its camera speed set so that the default number of frames covers LOOP_COVER loops."""
+    pts = dense_loop(layout.path)
+    length = float(np.linalg.norm(np.diff(np.vstack([pts, pts[:1]]), axis=0), axis=1).sum())
+    speed = LOOP_COVER * length / (layout.default_frames - 1)
+    return dataclasses.replace(layout, path=dataclasses.replace(layout.path, speed=speed))
 
 
 def _furnished_room(seed: int, name: str, path_kw: dict) -> SceneLayout:

@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from inrslam.errors import ConfigError
 from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.scenes.config import SceneConfig
-from inrslam.errors import ConfigError
 from inrslam.scenes.layouts import DEFAULT_FRAMES, SCENES, SceneLayout
 from inrslam.scenes.raycast import Renderer
 from inrslam.scenes.trajectory import camera_poses

@@ -81,6 +81,37 @@ class LostConfig:
 
 
 @dataclass
+class LoopConfig:
+    """Loop closure (`slam.loop.*`, on with `slam.loop_closure`; docs/loop_closure.md). At every new keyframe:
+    detect keyframes seen long before whose view overlaps it, verify them by GICP, add the verified loop edge to a
+    pose graph of the keyframes (GTSAM), move the keyframes (their frames follow), and re-fit the map from the ray
+    store once the corrections since the last re-fit add up to `refit_min_move`."""
+
+    min_gap: int = 100  # frames between a keyframe and an older keyframe it may close a loop with
+    max_dist: float = 0.8  # metres between their camera centres (current estimates) for a candidate ...
+    max_angle: float = 45.0  # ... and degrees between their viewing directions
+    min_overlap: float = 0.3  # fraction of the keyframe's depth points landing on the candidate's depth (reprojected)
+    overlap_tol: float = 0.1  # metres: |reprojected depth - candidate's depth| within this counts as overlap
+    candidates: int = 3  # the best candidates by overlap that are verified (each verified one is a loop edge)
+    corr_stages: list[float] = field(default_factory=lambda: [0.25, 0.1, 0.05])  # metres, GICP correspondence
+    # distance of each verification stage, coarse to fine (each starts where the previous ended)
+    min_fitness: float = 0.45  # final-stage inlier fraction of the keyframe's points (earlier stages: 0.3)
+    max_correction: float = 0.05  # metres a loop may move the keyframe, plus ...
+    max_correction_per_m: float = 0.05  # ... this per metre travelled since the candidate (a drift bound)
+    max_correction_angle: float = 10.0  # degrees a loop may turn the keyframe
+    consistency: float = 0.05  # metres: verified candidates placing the keyframe further apart are ambiguous (rejected)
+    refit_min_move: float = 0.01  # metres: re-fit the map once the corrections since the last re-fit (the largest
+    # keyframe move of each) add up to this, and at the last keyframe
+    odom_sigma_t: float = 0.01  # pose-graph std of an odometry edge (consecutive keyframes), metres ...
+    odom_sigma_r: float = 0.005  # ... and radians
+    loop_sigma_t: float = 0.01  # std of a loop edge, metres ...
+    loop_sigma_r: float = 0.005  # ... and radians
+    huber: float = 1.345  # Huber threshold of the loop edges, in standard deviations (0 = no robust kernel)
+    refit_iters: int = 40  # map re-fit iterations after a closure (rays from every keyframe, at the new poses)
+    refit_pixels: int = 2048  # rays per re-fit iteration
+
+
+@dataclass
 class SlamConfig:
     """Tracking, mapping and keyframe settings."""
 
@@ -109,6 +140,8 @@ class SlamConfig:
     ba_pose_every: int = 5  # pose step every N mapping iterations (gradients accumulate in between)
     keyframe_fraction: float = 0.05  # fraction of each keyframe's pixels kept for global sampling (Table 3: 0.005)
     max_pose_jump: float = 0.5  # metres; a tracked pose moving more than this from the prediction is rejected
+    loop_closure: bool = False  # detect revisits, optimise the keyframe pose graph, re-fit the map (slam.loop)
+    loop: LoopConfig = field(default_factory=LoopConfig)  # settings of loop closure
     poses: str = ""  # mapping only, with given poses: "gt" (the dataset's) or a TUM file; "" = track (SLAM)
     poses_tolerance: float = 0.02  # seconds; each frame takes the pose file's pose nearest in time, at most this far
     poses_anchor: bool = True  # move a pose file's trajectory so frame 0 sits at the dataset's frame-0 pose

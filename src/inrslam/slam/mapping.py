@@ -77,6 +77,19 @@ def map_frame(model: SceneModel, optimizers: Optimizers, store: KeyframeStore, k
     return res
 
 
+def refit(model: SceneModel, optimizers: Optimizers, store: KeyframeStore, kf_c2w: Tensor, iters: int,
+          n_pixels: int, generator: torch.Generator) -> list[float]:
+    """Re-fit the scene to every keyframe's stored rays at (K, 4, 4) poses `kf_c2w` (after a loop closure moved
+    them): `iters` iterations of `n_pixels` rays drawn over the whole store, poses fixed. Returns the losses."""
+    hist: list[float] = []
+    for _ in range(iters):
+        slot, dirs, rgb, depth = store.sample(n_pixels, generator)
+        losses, _ = model.loss(ray_poses(kf_c2w, slot), dirs, rgb, depth, generator)
+        if optimisation_step(losses["total"], optimizers):
+            hist.append(float(losses["total"].detach()))
+    return hist
+
+
 def initialise(model: SceneModel, optimizers: Optimizers, frame_rays: FrameRays, iters: int, n_pixels: int,
                generator: torch.Generator | None) -> list[float]:
     """Fit the scene to the first frame (pose fixed) for `iters` iterations of `n_pixels` fresh random rays.

@@ -17,7 +17,7 @@ from torch import Tensor
 from inrslam.slam.keyframes import KeyframeStore
 
 # fields a checkpoint from an older version may lack, with how to fill them in
-_OPTIONAL = {"rel", "rel_kf", "gicp_kfs", "track_losses", "lost_run"}
+_OPTIONAL = {"rel", "rel_kf", "gicp_kfs", "track_losses", "lost_run", "loops", "loop_stats"}
 
 
 @dataclass(eq=False)
@@ -38,6 +38,8 @@ class SlamState:
         gicp_kfs: GICP keyframes (slam.gicp.target keyframe / local_map); the last is the current target.
         track_losses: recent rendered-tracking losses of frames not lost (slam.lost.window; init's final first);
         lost_run: consecutive lost frames up to now.
+        loops: accepted loop closures, `{"candidate": frame, "frame": frame, "T": (4, 4) list}` (slam.loop_closure);
+        loop_stats: counts and times of loop closure (candidates, verified, rejected, accepted, ms).
     """
 
     model: torch.nn.Module
@@ -59,6 +61,8 @@ class SlamState:
     gicp_kfs: list[int] = field(default_factory=lambda: [0])
     track_losses: list[float] = field(default_factory=list)
     lost_run: int = 0
+    loops: list[dict] = field(default_factory=list)
+    loop_stats: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def fresh(cls, model: torch.nn.Module, optimizers: dict, store: KeyframeStore, generator: torch.Generator,
@@ -93,8 +97,10 @@ def _save(value: Any) -> Any:
         return value.get_state()
     if isinstance(value, Tensor):
         return value.detach().cpu()
-    if isinstance(value, dict) and all(hasattr(v, "state_dict") for v in value.values()):
+    if isinstance(value, dict) and value and all(hasattr(v, "state_dict") for v in value.values()):
         return {k: v.state_dict() for k, v in value.items()}
+    if isinstance(value, dict):
+        return dict(value)
     if hasattr(value, "state_dict"):
         return value.state_dict()
     if isinstance(value, np.ndarray):
@@ -111,7 +117,7 @@ def _load(current: Any, saved: Any, device: torch.device) -> Any:
         return current
     if isinstance(current, Tensor):
         return saved.to(device)
-    if isinstance(current, dict) and all(hasattr(v, "load_state_dict") for v in current.values()):
+    if isinstance(current, dict) and current and all(hasattr(v, "load_state_dict") for v in current.values()):
         for k, v in current.items():
             v.load_state_dict(saved[k])
         return current
@@ -120,4 +126,6 @@ def _load(current: Any, saved: Any, device: torch.device) -> Any:
         return current
     if isinstance(current, list):
         return list(saved)
+    if isinstance(current, dict):
+        return dict(saved)
     return saved

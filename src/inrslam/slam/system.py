@@ -20,7 +20,16 @@ from inrslam.errors import ConfigError, DataError, TrackingLost
 from inrslam.slam.config import GicpConfig, GicpTarget, MeshConfig, PoseInit, SlamConfig
 from inrslam.slam.frame_tensors import FrameTensors
 from inrslam.slam.keyframes import KeyframeStore
-from inrslam.slam.mapping import initialise, map_frame
+from inrslam.slam.loop_closure import (
+    consistent,
+    corrected_keyframes,
+    follow_keyframes,
+    nearby_keyframes,
+    overlap,
+    path_length,
+    verify,
+)
+from inrslam.slam.mapping import initialise, map_frame, refit
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import ModelConfig, SceneModel
 from inrslam.slam.poses import constant_velocity, relative_trajectory
@@ -379,6 +388,78 @@ class SlamSystem:
         cfg = self.cfg.slam
         n = max(1, int(round(cfg.keyframe_fraction * ft.intr.height * ft.intr.width)))
         self.store.add(i, *ft.random_rays(n, self.generator))
+        if cfg.loop_closure and self.given is None and i > 0:
+            t0 = time.perf_counter()
+            self._close_loop(i, ft.frame)
+            st = self.state.loop_stats
+            st["ms"] = st.get("ms", 0.0) + (time.perf_counter() - t0) * 1e3
+
+    def _close_loop(self, i: int, frame: Frame) -> None:
+        """Loop closure at the new keyframe i (slam.loop, docs/loop_closure.md): older keyframes near its estimated
+        pose whose depth overlaps its view are candidates; the best are verified by GICP; unless they disagree, each
+        verified one is a loop edge of the keyframe pose graph, whose optimum moves every keyframe (frames follow
+        their keyframes, the tracker's local map rigidly); once the moves since the last re-fit exceed
+        `refit_min_move` (or at the last keyframe), the map is re-fitted (a closure)."""
+        lc, g, s = self.cfg.slam.loop, self.cfg.slam.gicp, self.state
+        st = s.loop_stats
+        kf_ids = list(self.store.frame_ids)
+        est = s.est[: i + 1].double().cpu().numpy()
+        near = nearby_keyframes(i, kf_ids[:-1], est, lc)[:4 * lc.candidates]
+        if not near:
+            return
+        points = depth_points(frame.depth, frame.intrinsics, g)
+        depths = {c.frame: self.dataset[c.frame].depth for c in near}
+        for c in near:
+            c.overlap = overlap(points, est[i], est[c.frame], depths[c.frame], frame.intrinsics, lc.overlap_tol)
+        cands = sorted([c for c in near if c.overlap >= lc.min_overlap], key=lambda c: -c.overlap)[: lc.candidates]
+        st["candidates"] = st.get("candidates", 0) + len(cands)
+        if not cands:
+            return
+        cur = PreparedCloud(points, g)
+        verified = []
+        for c in cands:
+            v = verify(prepare_depth(depths[c.frame], frame.intrinsics, g), cur, est[c.frame], est[i],
+                       path_length(est, c.frame, i), c.frame, g, lc)
+            self._log({"type": "loop_candidate", "frame": i, "distance_m": round(c.distance, 4),
+                       "angle_deg": round(c.angle, 2), "overlap": round(c.overlap, 4), **v.record()})
+            if v.ok:
+                verified.append(v)
+        st["verified"] = st.get("verified", 0) + len(verified)
+        if not verified:
+            return
+        if not consistent(verified, est, lc.consistency):
+            st["ambiguous"] = st.get("ambiguous", 0) + 1
+            self._log({"type": "loop_rejected", "frame": i, "reason": "ambiguous",
+                       "candidates": [v.frame for v in verified]})
+            return
+        best = max(verified, key=lambda v: v.fitness)
+        s.loops += [{"candidate": v.frame, "frame": i, "T": v.T_cand_cur.tolist()} for v in verified]
+        t0 = time.perf_counter()
+        old_kf = est[kf_ids]
+        new_kf = corrected_keyframes(old_kf, kf_ids, s.loops, lc)
+        window = (s.gicp_kfs[-g.local_map_keyframes:][0] if self.cfg.slam.init is PoseInit.GICP
+                  and g.target is GicpTarget.LOCAL_MAP else None)
+        new_est = follow_keyframes(est, old_kf, new_kf, kf_ids, s.rel_kf, i, rigid_from=window)
+        graph_ms = (time.perf_counter() - t0) * 1e3
+        s.est[: i + 1] = torch.as_tensor(new_est, dtype=s.est.dtype, device=s.est.device)
+        self._local_target = None  # the GICP local map sits at the old poses
+        moved = np.linalg.norm(new_kf[:, :3, 3] - old_kf[:, :3, 3], axis=1)
+        rec = {"type": "loop_edge", "frame": i, "candidate": best.frame, "fitness": round(best.fitness, 4),
+               "correction_m": round(best.correction, 5), "edges": len(s.loops),
+               "keyframes_moved_max_m": round(float(moved.max()), 5),
+               "keyframes_moved_mean_m": round(float(moved.mean()), 5), "graph_ms": graph_ms}
+        # keyframe motion the map has not been re-fitted to yet; re-fit once it exceeds refit_min_move, and at the
+        # run's last keyframe, so that the final map matches the final poses
+        st["unfitted_m"] = st.get("unfitted_m", 0.0) + float(moved.max())
+        if st["unfitted_m"] > lc.refit_min_move or i + self.cfg.slam.map_every >= self.n_frames:
+            st["unfitted_m"] = 0.0
+            t0 = time.perf_counter()
+            losses = refit(self.model, s.optimizers, self.store, self.est[kf_ids], lc.refit_iters, lc.refit_pixels,
+                           self.generator)
+            st["closures"] = st.get("closures", 0) + 1
+            rec.update(type="loop_closed", refit_ms=(time.perf_counter() - t0) * 1e3,
+                       refit_loss_first=losses[0] if losses else None, refit_loss_last=losses[-1] if losses else None)
+        self._log(rec)
 
     # -- results ---------------------------------------------------------------------------------------------------
     def mesh(self) -> trimesh.Trimesh | None:
@@ -417,4 +498,14 @@ class SlamSystem:
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
             "poses": self.given.source["source"] if self.given is not None else "tracked",
+            **(self._loop_metrics() if self.cfg.slam.loop_closure else {}),
         }
+
+    def _loop_metrics(self) -> dict[str, Any]:
+        """Loop-closure counts and cost (docs/metrics.md)."""
+        s = self.state
+        st = s.loop_stats
+        return {"loop_candidates": int(st.get("candidates", 0)), "loop_verified": int(st.get("verified", 0)),
+                "loop_ambiguous": int(st.get("ambiguous", 0)), "loop_edges": len(s.loops),
+                "loops_closed": int(st.get("closures", 0)),
+                "loop_ms_per_frame": st.get("ms", 0.0) / (s.next_frame - 1) if s.next_frame > 1 else None}

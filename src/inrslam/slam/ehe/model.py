@@ -1,0 +1,68 @@
+"""`EheModel`: the EHE field with its ray marcher, objective and full-frame renderer (the interface the SLAM loop,
+the run writer and `LoadedRun` use of a scene model)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from inrslam.fields import make_optimizer
+from inrslam.geometry.camera import pixel_directions, world_rays
+from inrslam.geometry.intrinsics import Intrinsics
+from inrslam.slam.ehe.config import EheConfig
+from inrslam.slam.ehe.field import EheField
+from inrslam.slam.ehe.losses import ehe_losses
+from inrslam.slam.ehe.raymarch import sample_in_voxels
+from inrslam.slam.ehe.rendering import EheRender, render_samples
+
+
+class EheModel(nn.Module):
+    """EHE scene model over `bounds` ((3, 2) metres) from a run config with an `ehe` section (and `field.kernel`).
+
+    Attributes: field (`EheField`), truncation T metres, bounds (3, 2) buffer.
+    """
+
+    bounds: Tensor
+    field: EheField
+
+    def __init__(self, cfg, bounds: np.ndarray):
+        super().__init__()
+        self.ecfg: EheConfig = cfg.ehe
+        self.field = EheField(self.ecfg, bounds, kernel=cfg.field.kernel)
+        self.truncation = float(self.ecfg.truncation)
+        self.register_buffer("bounds", torch.as_tensor(np.asarray(bounds), dtype=torch.float32))
+
+    def make_optimizers(self, lr: float) -> dict[str, torch.optim.Optimizer]:
+        """"field": Adam at `lr` on priors and decoders, row-wise lazy Adam on the dense level."""
+        return {"field": make_optimizer(self.field, lr)}
+
+    def render(self, origins: Tensor, dirs: Tensor, generator: torch.Generator | None) -> EheRender:
+        """Render world rays (R, 3) (t = z-depth): samples inside the hit voxels (jittered with `generator`)."""
+        c = self.ecfg
+        samples = sample_in_voxels(self.field.voxels, origins, dirs, c.step * c.voxel_size, c.max_hits, c.max_depth,
+                                   generator)
+        return render_samples(self.field, origins, dirs, samples, self.truncation)
+
+    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, depth: Tensor,
+             generator: torch.Generator | None) -> tuple[dict[str, Tensor], EheRender]:
+        """Loss terms (`ehe_losses`) of world rays with observed rgb (R, 3) and depth (R,) metres."""
+        out = self.render(origins, dirs, generator)
+        return ehe_losses(out, rgb, depth, self.ecfg), out
+
+    @torch.no_grad()
+    def render_image(self, c2w: Tensor, intr: Intrinsics, n_coarse: int = 0,
+                     chunk: int = 8192) -> tuple[Tensor, Tensor]:
+        """Full frame without measured depth (samples inside hit voxels need none; `n_coarse` is unused).
+        Returns rgb (H, W, 3) in [0, 1] and depth (H, W) metres (0 where a ray hits no voxel)."""
+        dev = self.bounds.device
+        H, W = intr.height, intr.width
+        v, u = torch.meshgrid(torch.arange(H, device=dev), torch.arange(W, device=dev), indexing="ij")
+        dirs_cam = pixel_directions(intr, u.reshape(-1).float(), v.reshape(-1).float())
+        rgb, depth = [], []
+        for s in range(0, dirs_cam.shape[0], chunk):
+            o, d = world_rays(c2w, dirs_cam[s:s + chunk])
+            out = self.render(o, d, None)
+            rgb.append(out.rgb)
+            depth.append(out.depth)
+        return torch.cat(rgb).reshape(H, W, 3), torch.cat(depth).reshape(H, W)

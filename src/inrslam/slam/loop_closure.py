@@ -1,0 +1,164 @@
+"""Loop closure for the keyframes of the SLAM loop (docs/loop_closure.md): detection by geometric overlap,
+verification by two-stage GICP with a drift bound and an ambiguity check, and the pose-graph correction.
+
+Pure numpy (depth images and poses in, decisions and poses out); the loop (`slam.system`) reads the frames and
+applies the result. Poses are float64 c2w (4, 4), OpenCV axes, metres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from inrslam.errors import ConfigError
+from inrslam.geometry.pinhole import project_np
+from inrslam.slam import pose_graph
+from inrslam.slam.config import GicpConfig, LoopConfig
+from inrslam.slam.registration import PreparedCloud, register
+
+
+def view_angle_deg(Ta: np.ndarray, Tb: np.ndarray) -> float:
+    """Angle between the viewing directions (camera +z) of two c2w poses, degrees."""
+    c = float(np.clip(Ta[:3, 2] @ Tb[:3, 2], -1.0, 1.0))
+    return float(np.degrees(np.arccos(c)))
+
+
+def overlap(points_cam: np.ndarray, T_w_src: np.ndarray, T_w_dst: np.ndarray, depth_dst: np.ndarray, intr,
+            tol: float) -> float:
+    """Fraction of a frame's camera-frame points (N, 3) that, moved to the world by `T_w_src` and seen from
+    `T_w_dst`, land inside the destination image on a pixel whose depth (H, W, metres; 0 = none) is within `tol`
+    metres of theirs. 1 = the destination sees everything the source sees; 0 = nothing (or no points)."""
+    if points_cam.shape[0] == 0:
+        return 0.0
+    T = np.linalg.solve(T_w_dst, T_w_src)
+    p = points_cam @ T[:3, :3].T + T[:3, 3]
+    u, v, z = project_np(p, intr.fx, intr.fy, intr.cx, intr.cy)
+    H, W = depth_dst.shape
+    ok = (z > 0) & np.isfinite(u) & np.isfinite(v)
+    ui, vi = np.floor(u[ok] + 0.5).astype(np.int64), np.floor(v[ok] + 0.5).astype(np.int64)
+    inside = (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
+    d = depth_dst[vi[inside], ui[inside]]
+    hit = (d > 0) & (np.abs(d - z[ok][inside]) < tol)
+    return float(hit.sum()) / points_cam.shape[0]
+
+
+@dataclass
+class Candidate:
+    """An older keyframe that may close a loop with the current one."""
+
+    frame: int  # its frame index
+    distance: float  # metres between the camera centres (current estimates)
+    angle: float  # degrees between the viewing directions
+    overlap: float = 0.0  # `overlap` of the current keyframe's points on its depth
+
+
+def nearby_keyframes(frame: int, keyframes: list[int], est: np.ndarray, cfg: LoopConfig) -> list[Candidate]:
+    """Keyframes at least `cfg.min_gap` frames older than `frame` whose estimated camera is within `cfg.max_dist`
+    metres and `cfg.max_angle` degrees of it (est: (N, 4, 4) c2w by frame index), nearest first."""
+    Tc = est[frame]
+    out = []
+    for k in keyframes:
+        if frame - k < cfg.min_gap:
+            continue
+        dist = float(np.linalg.norm(est[k][:3, 3] - Tc[:3, 3]))
+        ang = view_angle_deg(est[k], Tc)
+        if dist <= cfg.max_dist and ang <= cfg.max_angle:
+            out.append(Candidate(k, dist, ang))
+    return sorted(out, key=lambda c: c.distance)
+
+
+def path_length(est: np.ndarray, a: int, b: int) -> float:
+    """Metres travelled by the estimated camera from frame a to frame b (sum of position steps)."""
+    p = est[a: b + 1, :3, 3]
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if b > a else 0.0
+
+
+@dataclass
+class Verification:
+    """GICP check of one candidate: the keyframe's pose in the candidate's camera and why it may be rejected."""
+
+    frame: int  # the candidate's frame
+    ok: bool
+    reason: str | None  # "coarse_<gicp reason>" / "<gicp reason>" / "correction" / "ambiguous", or None
+    T_cand_cur: np.ndarray  # (4, 4) current keyframe's camera in the candidate's camera (GICP)
+    fitness: float  # fine-stage inlier fraction
+    correction: float  # metres the loop would move the current keyframe
+    correction_angle: float  # degrees it would turn it
+    bound: float  # metres of correction allowed (max_correction + per metre travelled)
+
+    def record(self) -> dict:
+        """Its `loop_verify` log fields."""
+        return {"candidate": self.frame, "ok": self.ok, "reason": self.reason, "fitness": round(self.fitness, 4),
+                "correction_m": round(self.correction, 5), "correction_deg": round(self.correction_angle, 3),
+                "bound_m": round(self.bound, 4)}
+
+
+def verify(cand: PreparedCloud, cur: PreparedCloud, T_w_cand: np.ndarray, T_w_cur: np.ndarray, travelled: float,
+           frame: int, gicp: GicpConfig, cfg: LoopConfig) -> Verification:
+    """Register the current keyframe's cloud onto a candidate's (camera frames) from their estimated relative
+    pose, coarse to fine (`cfg.corr_stages`; a wide first stage reaches a drift of tens of centimetres, the last
+    one is precise), every stage with the fitness and degeneracy checks. The loop is rejected if it would move
+    the keyframe more than the drift bound `max_correction + max_correction_per_m * travelled` or turn it more
+    than `max_correction_angle`."""
+    T = np.linalg.solve(T_w_cand, T_w_cur)
+    bound = cfg.max_correction + cfg.max_correction_per_m * travelled
+    stages = list(cfg.corr_stages)
+    if not stages:
+        raise ConfigError("config key 'slam.loop.corr_stages': expected at least one correspondence distance, got []")
+    for k, corr in enumerate(stages):
+        last = k == len(stages) - 1
+        reg = register(cand, cur, T, dataclasses.replace(gicp, max_corr=corr, max_step=np.inf,
+                                                         min_fitness=cfg.min_fitness if last else 0.3))
+        if not reg.ok:
+            return Verification(frame, False, reg.reason if last else f"coarse_{reg.reason}", reg.T_target_source,
+                                reg.fitness, np.nan, np.nan, bound)
+        T = reg.T_target_source
+    moved = T_w_cand @ T
+    corr_m = float(np.linalg.norm(moved[:3, 3] - T_w_cur[:3, 3]))
+    dR = moved[:3, :3] @ T_w_cur[:3, :3].T
+    ang = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
+    ok = corr_m <= bound and ang <= cfg.max_correction_angle
+    return Verification(frame, ok, None if ok else "correction", T, reg.fitness, corr_m, ang, bound)
+
+
+def consistent(verified: list[Verification], est: np.ndarray, tol: float) -> bool:
+    """Whether the accepted verifications place the current keyframe within `tol` metres of each other (more than
+    one place that fits equally: an ambiguous, repeated-structure match)."""
+    pos = [(est[v.frame] @ v.T_cand_cur)[:3, 3] for v in verified]
+    return all(np.linalg.norm(p - pos[0]) <= tol for p in pos[1:])
+
+
+def corrected_keyframes(kf_poses: np.ndarray, kf_ids: list[int], loops: list[dict], cfg: LoopConfig) -> np.ndarray:
+    """Pose-graph optimisation of the keyframes (K, 4, 4) c2w: odometry edges between consecutive keyframes (from
+    their current poses) and every loop `{"candidate": frame, "frame": frame, "T": (4, 4) candidate <- current}`;
+    keyframe 0 fixed. Returns the corrected (K, 4, 4) poses."""
+    slot = {f: k for k, f in enumerate(kf_ids)}
+    edges = pose_graph.odometry_edges(kf_poses, cfg.odom_sigma_t, cfg.odom_sigma_r)
+    edges += [pose_graph.Edge(slot[lp["candidate"]], slot[lp["frame"]], np.asarray(lp["T"], dtype=np.float64),
+                              cfg.loop_sigma_t, cfg.loop_sigma_r, cfg.huber) for lp in loops]
+    return pose_graph.optimise(kf_poses, edges, fixed=0)
+
+
+def follow_keyframes(est: np.ndarray, old_kf: np.ndarray, new_kf: np.ndarray, kf_ids: list[int],
+                     rel_kf: np.ndarray, upto: int, rigid_from: int | None = None) -> np.ndarray:
+    """Frames 0..upto (est (N, 4, 4) c2w) after their keyframes moved from `old_kf` to `new_kf` (K, 4, 4): a
+    keyframe takes its new pose; any other frame moves rigidly with the keyframe it was tracked from
+    (`rel_kf`, frame ids), keeping its pose relative to it. Frames from `rigid_from` on (the tracker's local map)
+    all move with the newest keyframe instead, so that the window the next frames are registered onto keeps its
+    shape. Frames after `upto` are left as they are."""
+    out = est.copy()
+    slot = {f: k for k, f in enumerate(kf_ids)}
+    delta = new_kf @ np.linalg.inv(old_kf)  # (K, 4, 4) world-frame correction of each keyframe
+    start = upto + 1 if rigid_from is None else min(rigid_from, upto + 1)
+    for j in range(upto + 1):
+        if not np.isfinite(est[j]).all():
+            continue
+        if j >= start:
+            out[j] = delta[-1] @ est[j]
+        elif j in slot:
+            out[j] = new_kf[slot[j]]
+        elif rel_kf[j] in slot:
+            out[j] = delta[slot[int(rel_kf[j])]] @ est[j]
+    return out

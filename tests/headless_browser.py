@@ -1,0 +1,107 @@
+"""Open a page in Debian's headless chromium and look at it through the DevTools protocol: wait for a condition,
+collect console errors and uncaught exceptions, take a screenshot. For page tests (skip when `CHROMIUM` is None).
+Needs the `websockets` package (a dependency of viser)."""
+
+from __future__ import annotations
+
+import base64
+import itertools
+import json
+import re
+import shutil
+import subprocess
+import tempfile
+import time
+import urllib.request
+from dataclasses import dataclass, field
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+         "--hide-scrollbars", "--no-first-run", "--remote-debugging-port=0"]
+
+
+@dataclass
+class PageLoad:
+    """What the browser saw: `ready` (the condition held in time), `png` screenshot bytes, `errors` (console errors
+    and uncaught exceptions, one line each), `text` (the page's visible text)."""
+
+    ready: bool
+    png: bytes
+    text: str
+    errors: list[str] = field(default_factory=list)
+
+
+def _devtools_port(proc: subprocess.Popen, timeout: float) -> int:
+    end = time.time() + timeout
+    assert proc.stderr is not None
+    while time.time() < end:
+        line = proc.stderr.readline()
+        m = re.search(r"DevTools listening on ws://[^:]+:(\d+)/", line)
+        if m:
+            return int(m.group(1))
+        if not line and proc.poll() is not None:
+            break
+    raise RuntimeError("chromium did not open its DevTools port")
+
+
+def load_page(url: str, ready_js: str, size: tuple[int, int] = (1000, 700), timeout: float = 60.0,
+              then_js: str = "") -> PageLoad:
+    """Load `url` in a `size` (width, height) viewport, wait until the JavaScript expression `ready_js` is true (at
+    most `timeout` s), run `then_js` (e.g. close a notice), screenshot it."""
+    from websockets.sync.client import connect
+
+    if CHROMIUM is None:
+        raise RuntimeError("chromium is not installed (apt-get install -y chromium)")
+    with tempfile.TemporaryDirectory(prefix="inrslam-chromium-") as profile:
+        proc = subprocess.Popen([CHROMIUM, *FLAGS, f"--user-data-dir={profile}", f"--window-size={size[0]},{size[1]}",
+                                 "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            port = _devtools_port(proc, timeout)
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:
+                page = next(t for t in json.load(r) if t["type"] == "page")
+            with connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10) as ws:
+                return _drive(ws, url, ready_js, size, timeout, then_js)
+        finally:
+            proc.kill()
+            proc.wait(timeout=10)
+
+
+def _drive(ws, url: str, ready_js: str, size: tuple[int, int], timeout: float, then_js: str) -> PageLoad:
+    ids = itertools.count(1)
+    errors: list[str] = []
+
+    def note(event: dict) -> None:
+        method, p = event.get("method"), event.get("params", {})
+        if method == "Runtime.exceptionThrown":
+            d = p["exceptionDetails"]
+            errors.append("uncaught: " + str(d.get("exception", {}).get("description") or d.get("text")))
+        elif method == "Runtime.consoleAPICalled" and p.get("type") == "error":
+            errors.append("console.error: " + " ".join(str(a.get("value", a.get("description"))) for a in p["args"]))
+        elif method == "Log.entryAdded" and p["entry"].get("level") == "error":
+            errors.append(f"log: {p['entry'].get('text')} ({p['entry'].get('url', '')})")
+
+    def call(method: str, **params) -> dict:
+        i = next(ids)
+        ws.send(json.dumps({"id": i, "method": method, "params": params}))
+        while True:
+            msg = json.loads(ws.recv(timeout=timeout))
+            if msg.get("id") == i:
+                return msg.get("result", {})
+            note(msg)
+
+    for domain in ("Page", "Runtime", "Log"):
+        call(f"{domain}.enable")
+    call("Emulation.setDeviceMetricsOverride", width=size[0], height=size[1], deviceScaleFactor=1, mobile=False)
+    call("Page.navigate", url=url)
+    end, ready = time.time() + timeout, False
+    while not ready and time.time() < end:
+        ready = bool(call("Runtime.evaluate", expression=f"Boolean({ready_js})", returnByValue=True)
+                     .get("result", {}).get("value"))
+        if not ready:
+            time.sleep(0.25)
+    if then_js:
+        call("Runtime.evaluate", expression=then_js)
+    time.sleep(1.0)  # a few more frames of the render loop
+    text = call("Runtime.evaluate", expression="document.body.innerText", returnByValue=True)["result"]["value"]
+    png = base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
+    return PageLoad(ready=ready, png=png, text=text, errors=errors)

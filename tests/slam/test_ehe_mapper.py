@@ -1,0 +1,57 @@
+"""EHE per-frame mapping rules (docs/ehe.md §5): adaptive early ending, keyframe rule, keyframe window."""
+
+from __future__ import annotations
+
+import torch
+
+from inrslam.slam.ehe.config import EheConfig
+from inrslam.slam.ehe.mapper import EarlyStop, MapResult, needs_keyframe, optimise, select_window, voxel_overlap
+
+
+def test_early_ending_stops_on_the_second_loss_in_a_row_above_the_running_mean():
+    e = EarlyStop()
+    # running means before each loss: -, 4, 3.5, 3.63; 3.3 is below: the count starts again
+    assert [e.update(x) for x in (4.0, 3.0, 3.9, 3.3)] == [False, False, False, False]
+    e = EarlyStop()
+    assert [e.update(x) for x in (4.0, 3.0, 3.9, 3.8)] == [False, False, False, True]
+    e = EarlyStop()
+    assert not any(e.update(10.0 - k) for k in range(50))  # a falling loss never stops
+
+
+def test_optimise_ends_early_on_the_rule_and_runs_all_iterations_without_it():
+    losses = iter([4.0, 3.0, 3.9, 3.8, 1.0, 1.0] * 2)
+    p = torch.nn.Parameter(torch.zeros(()))
+
+    class Model:
+        def loss(self, *args):
+            v = next(losses)
+            return {"total": p * 0 + v, "mse": torch.tensor(0.01), "depth_l1": torch.tensor(0.0)}, None
+
+    opt = {"field": torch.optim.SGD([p], lr=0.1)}
+    batch = lambda: (None, None, None, None)  # noqa: E731
+    res = optimise(Model(), opt, batch, iters=6, early_stop=True, generator=torch.Generator())
+    assert isinstance(res, MapResult) and res.iters == 4 and abs(res.psnr[0] - 20.0) < 1e-5
+    losses = iter([4.0, 3.0, 3.9, 3.8, 1.0, 1.0])
+    assert optimise(Model(), opt, batch, iters=6, early_stop=False, generator=torch.Generator()).iters == 6
+
+
+def test_keyframe_rule_by_voxel_overlap_or_frame_gap():
+    cfg = EheConfig()
+    cur, last = torch.arange(0, 100), torch.arange(40, 200)
+    assert voxel_overlap(cur, last) == 0.6 and voxel_overlap(cur[:0], last) == 0.0
+    assert not needs_keyframe(0.6, 10, cfg)
+    assert needs_keyframe(0.5, 10, cfg)  # below kf_overlap = 0.55
+    assert needs_keyframe(0.9, 101, cfg) and not needs_keyframe(0.9, 100, cfg)  # more than 100 frames
+
+
+def test_window_takes_greedy_coverage_first_then_random_keyframes():
+    cur = torch.arange(0, 100)
+    kfs = [torch.arange(0, 60), torch.arange(50, 100), torch.arange(0, 55), torch.arange(500, 600)] + \
+          [torch.arange(1000 + k, 1001 + k) for k in range(8)]
+    g = torch.Generator().manual_seed(0)
+    w = select_window(cur, kfs, window=4, random_fraction=0.5, generator=g)
+    # kf 0 covers 60 voxels; then kf 1 adds 40 (kf 2 adds none): coverage stops, 2 random of the rest
+    assert w[:2] == [0, 1] and len(w) == 4 and len(set(w)) == 4 and not {0, 1} & set(w[2:])
+    assert select_window(cur, kfs[:3], window=4, random_fraction=0.5, generator=g) == [0, 1, 2]
+    all_random = select_window(cur, kfs, window=4, random_fraction=1.0, generator=g)
+    assert len(set(all_random)) == 4

@@ -1,0 +1,289 @@
+"""Loop closure's pieces on analytic cases: the pose graph corrects a known loop error to its ground truth, the
+overlap test, GICP verification accepts a true revisit and rejects a false one (a twin view beyond the drift bound,
+a single wall, an ambiguous pair), frames follow their keyframes, and the re-fit moves the map's surface to the
+corrected keyframe poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from inrslam.geometry.se3 import se3_exp
+from inrslam.slam.config import GicpConfig, LoopConfig
+from inrslam.slam.loop_closure import (
+    Candidate,
+    Verification,
+    consistent,
+    corrected_keyframes,
+    follow_keyframes,
+    nearby_keyframes,
+    overlap,
+    path_length,
+)
+
+gtsam = pytest.importorskip("gtsam", reason="loop closure's pose graph needs gtsam (pip install gtsam)")
+from test_registration_sdf_tracking import CORNER, INTR, WALL, look_at, plane_depth  # noqa: E402
+
+from inrslam.slam import pose_graph  # noqa: E402
+
+
+def twist(xi) -> np.ndarray:
+    """(6,) twist (rho metres, omega radians) -> (4, 4)."""
+    return se3_exp(torch.as_tensor(np.asarray(xi, dtype=np.float64))).numpy()
+
+
+def circle(n: int, radius: float = 1.0) -> np.ndarray:
+    """(n, 4, 4) c2w on a horizontal circle, each camera looking at the centre."""
+    out = []
+    for a in np.linspace(0.0, 2 * np.pi, n, endpoint=False):
+        out.append(look_at((radius * np.cos(a), radius * np.sin(a), 1.0), (0.0, 0.0, 1.0)))
+    return np.stack(out)
+
+
+def drifted(gt: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """Dead reckoning of gt's relative motions, each one followed by the error `step` (4, 4)."""
+    est = [gt[0]]
+    for k in range(1, len(gt)):
+        est.append(est[-1] @ pose_graph.relative(gt[k - 1], gt[k]) @ step)
+    return np.stack(est)
+
+
+def pos_err(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1)
+
+
+def test_pose_graph_with_exact_edges_recovers_the_ground_truth_from_drifted_poses():
+    gt = circle(16)
+    start = drifted(gt, twist([0.0, 0.0, 0.01, 0.01, 0.0, 0.0]))
+    edges = pose_graph.odometry_edges(gt, 0.01, 0.005)
+    edges.append(pose_graph.Edge(0, 15, pose_graph.relative(gt[0], gt[15]), 0.01, 0.005))
+    out = pose_graph.optimise(start, edges)
+    assert pos_err(start, gt).max() > 0.05  # the start is far off ...
+    assert pos_err(out, gt).max() < 1e-6  # ... and the graph puts every pose back
+    assert np.allclose(out[:, :3, :3], gt[:, :3, :3], atol=1e-6)
+
+
+def test_a_loop_edge_removes_most_of_the_accumulated_drift():
+    gt = circle(20)
+    est = drifted(gt, twist([0.0, 0.0, 0.004, 0.003, 0.0, 0.0]))  # a biased odometry
+    cfg = LoopConfig()
+    loop = {"candidate": 0, "frame": 19, "T": pose_graph.relative(gt[0], gt[19])}  # the revisit, measured exactly
+    out = corrected_keyframes(est, list(range(20)), [loop], cfg)
+    before, after = pos_err(est, gt), pos_err(out, gt)
+    assert after[-1] < 0.1 * before[-1]  # the loop's end is put back
+    assert np.sqrt(np.mean(after**2)) < 0.5 * np.sqrt(np.mean(before**2))  # and the drift is spread, not kept
+    assert np.allclose(out[0], est[0], atol=1e-9)  # keyframe 0 fixed
+
+
+def test_huber_kernel_limits_a_wrong_loop_edge():
+    gt = circle(12)
+    wrong = pose_graph.relative(gt[0], gt[11]) @ twist([0.5, 0, 0, 0, 0, 0])  # 50 cm off
+    moved = {}
+    for huber in (0.0, 1.345):
+        edges = pose_graph.odometry_edges(gt, 0.01, 0.005) + [pose_graph.Edge(0, 11, wrong, 0.01, 0.005, huber)]
+        moved[huber] = pos_err(pose_graph.optimise(gt, edges), gt).max()
+    assert moved[1.345] < 0.5 * moved[0.0]
+
+
+def test_overlap_of_a_view_with_itself_a_turned_away_view_and_a_wrong_depth():
+    T = look_at((0.3, 0.2, 1.2), (2.0, 1.0, 0.6))
+    depth = plane_depth(CORNER, T)
+    pts = np.argwhere(depth > 0)
+    cam = np.stack([(pts[:, 1] - INTR.cx) / INTR.fx, (pts[:, 0] - INTR.cy) / INTR.fy, np.ones(len(pts))], 1)
+    cam *= depth[pts[:, 0], pts[:, 1]][:, None]
+    assert overlap(cam, T, T, depth, INTR, 0.05) == pytest.approx(1.0)
+    away = look_at((0.3, 0.2, 1.2), (-2.0, -1.0, 0.6))  # the opposite direction: nothing in view
+    assert overlap(cam, T, away, plane_depth(CORNER, away), INTR, 0.05) == 0.0
+    assert overlap(cam, T, T, depth + 0.2, INTR, 0.05) == 0.0  # in view, but not where the depth says
+    assert overlap(np.zeros((0, 3)), T, T, depth, INTR, 0.05) == 0.0
+
+
+def test_candidates_are_old_near_and_facing_the_same_way():
+    est = np.stack([np.eye(4)] * 200)
+    est[150, :3, 3] = [0.5, 0, 0]  # near, but only 49 frames before 199
+    est[10, :3, 3] = [2.0, 0, 0]  # old but far
+    est[20, :3, :3] = look_at((0, 0, 0), (0, 1, 0))[:3, :3]  # old, near, looking 90 degrees away
+    est[30, :3, 3] = [0.3, 0, 0]  # old, near, same direction
+    est[40, :3, 3] = [0.1, 0, 0]
+    cands = nearby_keyframes(199, [10, 20, 30, 40, 150], est, LoopConfig(min_gap=100, max_dist=0.8, max_angle=45))
+    assert [c.frame for c in cands] == [40, 30]  # nearest first
+    assert cands[0].distance == pytest.approx(0.1) and cands[0].angle == pytest.approx(0.0)
+    assert path_length(est, 0, 2) == 0.0 and path_length(est, 29, 31) == pytest.approx(0.6)
+
+
+@pytest.fixture(scope="module")
+def clouds():
+    pytest.importorskip("small_gicp", reason="loop verification needs small_gicp")
+    from inrslam.slam.registration import prepare_depth
+
+    g = GicpConfig(pixel_stride=1)
+    T_cand = look_at((0.3, 0.2, 1.2), (2.0, 1.0, 0.6))
+    T_cur = T_cand @ twist([0.02, -0.01, 0.01, 0.03, -0.02, 0.01])
+    return g, T_cand, T_cur, {name: prepare_depth(plane_depth(CORNER, T), INTR, g)
+                              for name, T in (("cand", T_cand), ("cur", T_cur))}
+
+
+def test_verification_accepts_a_true_revisit_despite_drift(clouds):
+    from inrslam.slam.loop_closure import verify
+
+    g, T_cand, T_cur, c = clouds
+    drift = twist([0.06, 0.04, 0, 0, 0, 0])  # the estimate of the current keyframe is 7 cm off
+    v = verify(c["cand"], c["cur"], T_cand, drift @ T_cur, 5.0, 7, g, LoopConfig())
+    assert v.ok and v.reason is None and v.frame == 7
+    assert np.allclose(v.T_cand_cur, np.linalg.solve(T_cand, T_cur), atol=2e-3)  # the true relative pose
+    assert v.correction == pytest.approx(np.linalg.norm([0.06, 0.04]), abs=3e-3)
+    assert v.record()["ok"] is True
+
+
+def test_verification_rejects_a_twin_view_beyond_the_drift_bound(clouds):
+    from inrslam.slam.loop_closure import verify
+
+    g, T_cand, T_cur, c = clouds
+    # the same view, but the estimates put the cameras 20 cm apart after only 1 m of travel: a repeated-structure
+    # twin, not a revisit (bound: 5 cm + 5 cm per metre travelled)
+    claimed = twist([0.2, 0, 0, 0, 0, 0]) @ T_cur
+    v = verify(c["cand"], c["cur"], T_cand, claimed, 1.0, 7, g, LoopConfig())
+    assert not v.ok and v.reason == "correction" and v.correction > v.bound == pytest.approx(0.1)
+    assert verify(c["cand"], c["cur"], T_cand, claimed, 4.0, 7, g, LoopConfig()).ok  # after 4 m, plausible drift
+
+
+def test_verification_rejects_a_single_wall():
+    pytest.importorskip("small_gicp", reason="loop verification needs small_gicp")
+    from inrslam.slam.loop_closure import verify
+    from inrslam.slam.registration import prepare_depth
+
+    g = GicpConfig(pixel_stride=1)
+    T = look_at((0.0, 0.0, 1.2), (2.0, 0.0, 1.2))
+    wall = prepare_depth(plane_depth(WALL, T), INTR, g)
+    v = verify(wall, wall, T, T, 5.0, 3, g, LoopConfig())
+    assert not v.ok and v.reason == "coarse_degenerate"  # the wide stage already sees a one-wall view
+
+
+def test_verifications_that_disagree_are_ambiguous():
+    est = np.stack([np.eye(4)] * 3)
+    est[2, :3, 3] = [1.0, 0, 0]
+    near = lambda frame, T: Verification(frame, True, None, T, 0.9, 0.01, 0.1, 0.1)
+    a = near(0, twist([0.5, 0, 0, 0, 0, 0]))  # keyframe at x = 0.5
+    b = near(2, twist([-0.49, 0, 0, 0, 0, 0]))  # x = 0.51: agrees
+    c = near(2, twist([-0.3, 0, 0, 0, 0, 0]))  # x = 0.7: another place
+    assert consistent([a, b], est, 0.05) and not consistent([a, c], est, 0.05) and consistent([a], est, 0.05)
+    assert isinstance(Candidate(1, 0.1, 2.0).overlap, float)
+
+
+def test_frames_follow_their_keyframes_rigidly():
+    est = np.stack([np.eye(4)] * 6)
+    for j in range(6):
+        est[j, :3, 3] = [0.1 * j, 0, 0]
+    kf_ids, rel_kf = [0, 3], np.array([-1, 0, 0, 0, 3, 3])
+    old_kf = est[kf_ids]
+    new_kf = old_kf.copy()
+    new_kf[1] = twist([0, 0.2, 0, 0, 0, np.pi / 2]) @ old_kf[1]  # keyframe 3 turned and shifted
+    out = follow_keyframes(est, old_kf, new_kf, kf_ids, rel_kf, upto=4)
+    assert np.allclose(out[:3], est[:3]) and np.allclose(out[3], new_kf[1])
+    # frame 4 keeps its pose relative to keyframe 3; frame 5 (after `upto`) is not touched
+    assert np.allclose(np.linalg.solve(out[3], out[4]), np.linalg.solve(est[3], est[4]))
+    assert np.allclose(out[5], est[5])
+    # with the tracker's local map from frame 2 on, frames 2.. move rigidly with the newest keyframe (3)
+    rigid = follow_keyframes(est, old_kf, new_kf, kf_ids, rel_kf, upto=4, rigid_from=2)
+    assert np.allclose(rigid[:2], est[:2]) and np.allclose(rigid[3], new_kf[1])
+    for a in (2, 3, 4):  # the window keeps its shape
+        assert np.allclose(np.linalg.solve(rigid[3], rigid[a]), np.linalg.solve(est[3], est[a]))
+
+
+def test_refit_moves_the_surface_to_the_corrected_keyframe_poses():
+    from inrslam.config import load_config
+    from inrslam.slam.keyframes import KeyframeStore
+    from inrslam.slam.mapping import initialise, refit
+    from inrslam.slam.model import SceneModel
+
+    cfg = load_config(preset="quick", overrides=["field.encoding=dense", "field.block_coarse=0.25",
+                                                 "field.block_fine=0.1", "render.name=direct", "sampling.n_free=8",
+                                                 "sampling.n_surface=8"])
+    bounds = np.array([[-1.0, 1.0], [-1.0, 1.0], [-0.2, 1.8]])
+    torch.manual_seed(0)
+    model = SceneModel(cfg, bounds)
+    opts = model.make_optimizers(0.01)
+    g = torch.Generator().manual_seed(0)
+    # a wall 1.4 m in front of a camera at the origin looking along +z; its rays in the keyframe store
+    n = 1024
+    dirs = torch.cat([(torch.rand(n, 2, generator=g) - 0.5) * 0.8, torch.ones(n, 1)], 1)
+    depth, rgb = torch.full((n,), 1.4), torch.full((n, 3), 0.5)
+    store = KeyframeStore()
+    store.add(0, dirs, rgb, depth)
+    wrong = torch.eye(4)
+    wrong[2, 3] = -0.1  # the keyframe's drifted pose puts the wall at z = 1.3 ...
+    right = torch.eye(4)  # ... the corrected one at z = 1.4
+    initialise(model, opts, lambda k: (wrong,) + (dirs[:k], rgb[:k], depth[:k]), 60, 512, g)
+
+    def sdf_err(c2w: torch.Tensor) -> float:
+        pts = (dirs[:512] * depth[:512, None]) @ c2w[:3, :3].T + c2w[:3, 3]
+        with torch.no_grad():
+            return float(model.field.sdf(pts).abs().mean())
+
+    before = sdf_err(right)
+    losses = refit(model, opts, store, right[None], 60, 512, g)
+    after = sdf_err(right)
+    assert len(losses) == 60 and losses[-1] < losses[0]
+    assert after < 0.5 * before  # the surface now sits where the corrected keyframe sees it
+
+
+@pytest.mark.parametrize("override, expected", [("slam.loop.corr_stages=[]", "at least one"),
+                                                ("slam.loop.corr_stages=[0.2,-0.1]", "> 0"),
+                                                ("slam.loop.min_overlap=1.5", "in [0, 1]")])
+def test_bad_loop_settings_are_one_line_config_errors(override, expected):
+    from inrslam.config import load_config
+    from inrslam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"slam\.loop\.") as e:
+        load_config(preset="accurate", overrides=[override])
+    assert expected in str(e.value) and "\n" not in str(e.value)
+
+
+LOOP_RUN = ["data.builtin.frames=120", "data.builtin.motion_scale=2.67", "data.builtin.width=96",
+            "data.builtin.height=72", "slam.init_iters=20", "slam.map_every=10", "slam.map_iters=3",
+            "slam.map_pixels=512", "slam.gicp.pixel_stride=1", "slam.loop.refit_iters=5",
+            "slam.loop.refit_pixels=512", "slam.checkpoint_every=0", "eval.enabled=false", "mesh.enabled=false",
+            "output.tensorboard=false"]
+
+
+@pytest.fixture(scope="module")
+def loop_run(tmp_path_factory):
+    """`accurate` with loop closure once around the built-in loop scene (120 small frames)."""
+    pytest.importorskip("small_gicp", reason="the accurate preset needs small_gicp")
+    from inrslam.config import load_config
+    from inrslam.runner import run_slam
+
+    out = tmp_path_factory.mktemp("loop") / "run"
+    run_slam(load_config(preset="accurate", overrides=["data.path=builtin:loop", "slam.loop_closure=true",
+                                                       *LOOP_RUN]), out)
+    return out
+
+
+def _records(run_dir, kind: str) -> list[dict]:
+    import json
+
+    recs = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
+    return [r for r in recs if r["type"] == kind]
+
+
+def test_closure_fires_at_the_revisit_of_the_loop_scene_and_brings_the_end_back(loop_run):
+    import json
+
+    from inrslam.io.trajectory import read_tum
+
+    closed = _records(loop_run, "loop_closed")
+    edges = _records(loop_run, "loop_edge") + closed
+    assert closed and all(r["frame"] >= 100 and r["candidate"] <= 20 for r in edges)  # only where the loop ends
+    c = closed[0]  # its start, where the drift was corrected
+    cands = _records(loop_run, "loop_candidate")
+    assert cands and all(r["frame"] - r["candidate"] >= 100 for r in cands)
+    m = json.loads((loop_run / "metrics.json").read_text())
+    assert m["loops_closed"] == len(closed) and m["loop_edges"] == edges[-1]["edges"]
+    assert m["loop_verified"] >= m["loop_edges"] and m["loop_candidates"] >= m["loop_verified"]
+    assert m["loop_ms_per_frame"] > 0
+    _, est = read_tum(loop_run / "trajectory.txt")
+    _, gt = read_tum(loop_run / "trajectory_gt.txt")
+    err = np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
+    # the closure moved the closing keyframe towards where it really is: it is now closer than the move was long
+    assert err[c["frame"]] < c["correction_m"]
