@@ -19,6 +19,7 @@ def edge_errors(run_dir: Path) -> list[tuple[int, int, float, float]]:
     """(candidate, frame, translation error cm, rotation error deg) of every loop edge of a run."""
     from inrslam.io.trajectory import read_tum
     from inrslam.runner.checkpoint import load_checkpoint
+    from inrslam.slam.registration import rotation_deg
 
     state = load_checkpoint(run_dir / "checkpoints" / "latest.pt")
     _, gt = read_tum(run_dir / "trajectory_gt.txt")
@@ -26,9 +27,8 @@ def edge_errors(run_dir: Path) -> list[tuple[int, int, float, float]]:
     for lp in state.get("loops", []):
         a, b, T = lp["candidate"], lp["frame"], np.asarray(lp["T"], dtype=np.float64)
         G = np.linalg.solve(gt[a], gt[b])
-        dR = T[:3, :3] @ G[:3, :3].T
-        ang = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)))
-        out.append((a, b, float(np.linalg.norm(T[:3, 3] - G[:3, 3]) * 100), float(ang)))
+        ang = rotation_deg(T[:3, :3] @ G[:3, :3].T)
+        out.append((a, b, float(np.linalg.norm(T[:3, 3] - G[:3, 3]) * 100), ang))
     return out
 
 

@@ -16,7 +16,7 @@ from inrslam.errors import ConfigError
 from inrslam.geometry.pinhole import project_np
 from inrslam.slam import pose_graph
 from inrslam.slam.config import GicpConfig, LoopConfig
-from inrslam.slam.registration import PreparedCloud, register
+from inrslam.slam.registration import PreparedCloud, register, rotation_deg
 
 
 def view_angle_deg(Ta: np.ndarray, Tb: np.ndarray) -> float:
@@ -117,8 +117,7 @@ def verify(cand: PreparedCloud, cur: PreparedCloud, T_w_cand: np.ndarray, T_w_cu
         T = reg.T_target_source
     moved = T_w_cand @ T
     corr_m = float(np.linalg.norm(moved[:3, 3] - T_w_cur[:3, 3]))
-    dR = moved[:3, :3] @ T_w_cur[:3, :3].T
-    ang = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
+    ang = rotation_deg(moved[:3, :3] @ T_w_cur[:3, :3].T)
     ok = corr_m <= bound and ang <= cfg.max_correction_angle
     return Verification(frame, ok, None if ok else "correction", T, reg.fitness, corr_m, ang, bound)
 

@@ -48,11 +48,15 @@ def depth_points(depth: np.ndarray, intr, cfg: GicpConfig) -> np.ndarray:
     return backproject_np(depth, intr.fx, intr.fy, intr.cx, intr.cy, cfg.pixel_stride, cfg.max_depth)
 
 
+def rotation_deg(R: np.ndarray) -> float:
+    """Angle of a rotation (3, 3), degrees: arccos((trace R - 1) / 2)."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
 def moved_beyond(T: np.ndarray, dist: float, angle_deg: float) -> bool:
     """Whether a relative pose (4, 4) moves more than `dist` metres or rotates more than `angle_deg` degrees (the
     GICP keyframe renewal rule)."""
-    cos = np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)
-    return bool(np.linalg.norm(T[:3, 3]) > dist or np.degrees(np.arccos(cos)) > angle_deg)
+    return bool(np.linalg.norm(T[:3, 3]) > dist or rotation_deg(T[:3, :3]) > angle_deg)
 
 
 def hessian_degeneracy(H: np.ndarray) -> float:
