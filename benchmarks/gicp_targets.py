@@ -4,6 +4,7 @@ The numbers of docs/accurate.md's target table; never asserted in tests.
     python benchmarks/gicp_targets.py --data builtin:room --target keyframe --kf-dist 0.15
     python benchmarks/gicp_targets.py --data ../shared/data/7scenes_redkitchen --dataset 7scenes \\
         --target local_map --keyframes 10 --kf-dist 0.1 --max-corr 0.05
+    python benchmarks/gicp_targets.py --data builtin:handheld --depth-filter 2 --downsample 0.03 --neighbors 20
 
 Same registration code and checks as `slam.init=gicp` (`inrslam.slam.registration`); a failed check keeps the
 constant-velocity prediction. Keyframes are renewed on `--kf-dist` metres / 10 degrees of motion, a fitness below
@@ -27,6 +28,9 @@ def main() -> None:
     ap.add_argument("--keyframes", type=int, default=10, help="local_map: keyframes merged")
     ap.add_argument("--kf-dist", type=float, default=0.1)
     ap.add_argument("--max-corr", type=float, default=0.05)
+    ap.add_argument("--downsample", type=float, default=0.02, help="voxel size, metres")
+    ap.add_argument("--neighbors", type=int, default=10, help="neighbours per covariance")
+    ap.add_argument("--depth-filter", type=int, default=0, help="bilateral filter radius, px (noisy depth only)")
     args = ap.parse_args()
 
     from inrslam.config import load_config
@@ -38,7 +42,8 @@ def main() -> None:
     cfg = load_config(preset="paper", overrides=[f"data.path={args.data}", f"data.dataset={args.dataset}",
                                                  f"data.max_frames={args.max_frames}"])
     ds = open_dataset(cfg.data)
-    g = GicpConfig(max_corr=args.max_corr, kf_dist=args.kf_dist)
+    g = GicpConfig(max_corr=args.max_corr, kf_dist=args.kf_dist, downsample=args.downsample,
+                   neighbors=args.neighbors, depth_filter=args.depth_filter)
     pts = [None] * len(ds)
 
     def points(i: int) -> np.ndarray:
@@ -74,7 +79,8 @@ def main() -> None:
     est_a = np.stack(est)
     gt = np.stack([ds[i].c2w for i in range(len(ds))])
     a, d = ate(est_a, gt), drift_per_100(est_a, gt)
-    print(f"{args.data} target={args.target} frames={len(ds)} keyframes={len(kfs)} failed_checks={fails}: "
+    print(f"{args.data} target={args.target} downsample={g.downsample} neighbors={g.neighbors} "
+          f"depth_filter={g.depth_filter} frames={len(ds)} keyframes={len(kfs)} failed_checks={fails}: "
           f"ATE {100 * a['rmse']:.3f} cm, drift {100 * d['drift_m_per_100']:.3f} cm/100 frames, "
           f"{1e3 * (time.perf_counter() - t0) / max(len(ds) - 1, 1):.0f} ms/frame")
 

@@ -130,3 +130,55 @@ def test_fast_preset_tracks_like_accurate_with_a_lighter_map(tmp_path_factory):
     recs = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [r["frame"] for r in recs if r["type"] == "map"] == [10]
     assert all("gicp_fitness" in r for r in recs if r["type"] == "track")
+
+
+NOISY = ["data.path=builtin:handheld", "data.max_frames=5"]  # depth noise 4 mm at 1 m, 5 % holes
+
+
+@pytest.fixture(scope="module")
+def noisy(tmp_path_factory):
+    return run(tmp_path_factory, "noisy", "accurate", NOISY)
+
+
+def test_photometric_refinement_and_depth_filter_run_on_noisy_depth_only(noisy, all_on, tmp_path_factory):
+    for r in tracks(noisy):
+        assert r["depth_noise"] == pytest.approx(0.004, rel=0.15)  # estimated per frame
+        assert r["photo_iters"] >= 1 and r["photo_points"] >= 300 and r["photo_target"] < r["frame"]
+    for r in tracks(all_on):  # noise-free synthetic depth: neither the filter nor the refinement runs
+        assert r["depth_noise"] < 1e-4 and "photo_iters" not in r
+    off = run(tmp_path_factory, "photo_off", "accurate", NOISY + ["slam.photo.enabled=false"])
+    assert all("photo_iters" not in r for r in tracks(off))
+    assert (off / "trajectory.txt").read_text() != (noisy / "trajectory.txt").read_text()
+
+
+def test_photometric_refinement_takes_over_where_gicp_fails(tmp_path_factory):
+    out = run(tmp_path_factory, "rescue", "accurate", NOISY + ["slam.gicp.degeneracy_ratio=2"])
+    for r in tracks(out):
+        assert r["fallback"] == "gicp_degenerate" and r["photo_rescued"]  # the event is still logged ...
+        assert "sdf_iters" not in r and r["iters"] == 0  # ... but the neural map did not track
+    out = run(tmp_path_factory, "no_rescue", "accurate", NOISY + ["slam.gicp.degeneracy_ratio=2",
+                                                                  "slam.photo.rescue=false"])
+    for r in tracks(out):
+        assert "photo_rescued" not in r and r["sdf_iters"] >= 1 and r["iters"] >= 1
+
+
+def test_interrupted_noisy_accurate_run_resumes_to_the_uninterrupted_result(noisy, tmp_path):
+    out = tmp_path / "interrupted"
+
+    def stop_after_frame_4(i, n, info):
+        if i == 4:
+            raise KeyboardInterrupt  # after the checkpoint of frame 3: the photometric reference is rebuilt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(load_config(preset="accurate", overrides=SMALL + NOISY), out, progress=stop_after_frame_4)
+    resume_slam(out)
+    assert (out / "trajectory.txt").read_text() == (noisy / "trajectory.txt").read_text()
+
+
+def test_a_photometric_refinement_moving_a_gicp_pose_too_far_is_rejected(tmp_path_factory):
+    # every view counts as well conditioned (weak_degeneracy 0), so the 1 nm bound applies to every frame
+    out = run(tmp_path_factory, "photo_jump", "accurate", NOISY + ["slam.photo.max_step=1e-9",
+                                                                   "slam.photo.weak_degeneracy=0"])
+    for r in tracks(out):
+        assert r["fallback"] == "photo_jump" and r["photo_shift_mm"] > 0  # logged, GICP's pose kept
+        assert r["photo_target"] == r["frame"] - 1  # a failed refinement renews the photometric keyframe

@@ -39,6 +39,9 @@ class GicpConfig:
     eps_trans: float = 1e-5  # stop when an update moves less than this, metres ...
     eps_rot: float = 1e-5  # ... and rotates less than this, radians (small_gicp's default, 1 mm / 0.1 deg, stops early)
     pixel_stride: int = 2  # back-project every N-th pixel in u and v
+    depth_filter: int = 0  # bilateral filter of the depth before back-projection: window radius in pixels (0 = off)
+    depth_noise: float = 0.0  # depth noise std at 1 m (grows with depth^2), metres; 0 = estimated from each frame
+    filter_min_noise: float = 0.002  # filter only depth whose noise at 1 m is at least this, metres (Kinect: ~0.001)
     max_depth: float = 6.0  # ignore depth beyond this, metres
     min_fitness: float = 0.6  # minimum inlier fraction of the source points
     degeneracy_ratio: float = 0.005  # minimum lambda_min / lambda_max of the rotation and translation Hessian blocks
@@ -67,6 +70,30 @@ class SdfTrackConfig:
     tol_rot: float = 2e-5  # ... and below this, radians
     damping: float = 1e-4  # Levenberg-Marquardt damping, relative to the Hessian's mean diagonal
     max_step: float = 0.1  # metres; a total correction larger than this is rejected (pose kept)
+
+
+@dataclass
+class PhotoConfig:
+    """Photometric refinement after the geometric initialiser (`slam.photo.*`, `inrslam.slam.photometric`): direct
+    alignment of the frame's grey image onto a photometric keyframe (its colour and filtered depth), coarse to fine."""
+
+    enabled: bool = False  # refine every frame's pose photometrically (after GICP; also where GICP failed)
+    rescue: bool = True  # where GICP failed its checks, a successful refinement stands (no neural tracking)
+    min_depth_noise: float = 0.0005  # only on depth at least this noisy (std at 1 m, metres, estimated per frame)
+    levels: int = 3  # pyramid levels (each halves the image)
+    iters: int = 10  # Gauss-Newton iterations per level (cap; stops on a step below tol)
+    tol: float = 1e-6  # stop when the twist's norm is below this
+    grad_threshold: float = 0.01  # reference pixels need an intensity gradient above this (grey in [0, 1] per px)
+    max_points: int = 30000  # reference pixels per level (a random subset beyond)
+    min_points: int = 300  # fewer valid residuals at the finest level (a quarter per coarser level): keep the pose
+    huber: float = 0.05  # Huber threshold on the intensity residual
+    max_step: float = 0.01  # metres; a refinement moving a well-conditioned GICP pose further than this and ...
+    jump_factor: float = 4.0  # ... this times the median move of the last `jump_window` accepted refinements is
+    jump_window: int = 20  # rejected (real sensors: colour and depth disagree by millimetres on every frame) ...
+    weak_degeneracy: float = 0.05  # ... where GICP's degeneracy is below this (a near-degenerate view) or GICP
+    weak_max_step: float = 0.05  # failed its checks, the bound is this, metres
+    kf_dist: float = 0.3  # a new photometric keyframe after this much motion from it, metres ...
+    kf_angle: float = 25.0  # ... or this much rotation, degrees
 
 
 @dataclass
@@ -128,6 +155,7 @@ class SlamConfig:
     const_velocity: bool = True  # constant-velocity motion prediction
     init: PoseInit = PoseInit.CONST_VELOCITY  # tracking's starting pose: prediction, or GICP onto the previous frame
     gicp: GicpConfig = field(default_factory=GicpConfig)  # settings of init = gicp
+    photo: PhotoConfig = field(default_factory=PhotoConfig)  # photometric refinement (after the initialiser)
     sdf_track: SdfTrackConfig = field(default_factory=SdfTrackConfig)  # point-to-surface refinement (before Adam)
     lost: LostConfig = field(default_factory=LostConfig)  # lost-tracking detection / recovery
     map_every: int = 5  # mapping + keyframe every N frames

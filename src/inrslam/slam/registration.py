@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from inrslam.errors import ConfigError
+from inrslam.geometry.depth_filter import bilateral_depth, estimate_depth_noise
 from inrslam.geometry.pinhole import backproject_np
 from inrslam.slam.config import GicpConfig
 
@@ -42,10 +43,28 @@ def _small_gicp():
     return small_gicp
 
 
-def depth_points(depth: np.ndarray, intr, cfg: GicpConfig) -> np.ndarray:
+def depth_points(depth: np.ndarray, intr, cfg: GicpConfig, noise: float | None = None) -> np.ndarray:
     """A frame's (H, W) depth in metres -> (N, 3) float64 camera-frame points of its valid pixels, every
-    `cfg.pixel_stride`-th row and column, depth <= `cfg.max_depth` (`inrslam.geometry.pinhole.backproject_np`)."""
+    `cfg.pixel_stride`-th row and column, depth <= `cfg.max_depth` (`inrslam.geometry.pinhole.backproject_np`),
+    after the bilateral filter of `filtered_depth` (`noise`: the depth's noise at 1 m if already known)."""
+    depth = filtered_depth(depth, cfg, stride=cfg.pixel_stride, noise=noise)
     return backproject_np(depth, intr.fx, intr.fy, intr.cx, intr.cy, cfg.pixel_stride, cfg.max_depth)
+
+
+def depth_noise(depth: np.ndarray, cfg: GicpConfig) -> float:
+    """The depth noise std at 1 m (metres) the filter assumes: `cfg.depth_noise`, or estimated from `depth` if 0."""
+    return cfg.depth_noise if cfg.depth_noise > 0 else estimate_depth_noise(depth)
+
+
+def filtered_depth(depth: np.ndarray, cfg: GicpConfig, stride: int = 1, noise: float | None = None) -> np.ndarray:
+    """`depth` after the bilateral filter of radius `cfg.depth_filter` (every `stride`-th pixel), when that is > 0 and
+    the depth's noise (`noise`, else `depth_noise`) is at least `cfg.filter_min_noise`; else unchanged."""
+    if cfg.depth_filter <= 0:
+        return depth
+    s = depth_noise(depth, cfg) if noise is None else noise
+    if not s >= cfg.filter_min_noise:  # also nan: no three valid neighbours
+        return depth
+    return bilateral_depth(depth, cfg.depth_filter, s, stride=stride)
 
 
 def rotation_deg(R: np.ndarray) -> float:

@@ -17,7 +17,8 @@ from torch import Tensor
 from inrslam.slam.keyframes import KeyframeStore
 
 # fields a checkpoint from an older version may lack, with how to fill them in
-_OPTIONAL = {"rel", "rel_kf", "gicp_kfs", "track_losses", "lost_run", "loops", "loop_stats"}
+_OPTIONAL = {"rel", "rel_kf", "gicp_kfs", "photo_kfs", "photo_shifts", "track_losses", "lost_run", "loops",
+             "loop_stats"}
 
 
 @dataclass(eq=False)
@@ -36,6 +37,8 @@ class SlamState:
         proc_psnr, proc_depth_l1: per-batch PSNR (dB) and depth L1 (m) seen while mapping.
         events: fallbacks and other exceptional events, `{"frame": i, "event": str}`.
         gicp_kfs: GICP keyframes (slam.gicp.target keyframe / local_map); the last is the current target.
+        photo_kfs: photometric keyframes (slam.photo); the last is the current reference.
+        photo_shifts: how far the last accepted photometric refinements moved their poses, metres (slam.photo.jump_*).
         track_losses: recent rendered-tracking losses of frames not lost (slam.lost.window; init's final first);
         lost_run: consecutive lost frames up to now.
         loops: accepted loop closures, `{"candidate": frame, "frame": frame, "T": (4, 4) list}` (slam.loop_closure);
@@ -59,6 +62,8 @@ class SlamState:
     proc_depth_l1: list[float] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
     gicp_kfs: list[int] = field(default_factory=lambda: [0])
+    photo_kfs: list[int] = field(default_factory=lambda: [0])
+    photo_shifts: list[float] = field(default_factory=list)
     track_losses: list[float] = field(default_factory=list)
     lost_run: int = 0
     loops: list[dict] = field(default_factory=list)

@@ -32,8 +32,17 @@ from inrslam.slam.loop_closure import (
 from inrslam.slam.mapping import initialise, map_frame, refit
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import ModelConfig, SceneModel
+from inrslam.slam.photometric import PhotoLevel, align_photometric, build_pyramid, step_bound
 from inrslam.slam.poses import constant_velocity, relative_trajectory
-from inrslam.slam.registration import PreparedCloud, depth_points, moved_beyond, prepare_depth, register
+from inrslam.slam.registration import (
+    PreparedCloud,
+    depth_noise,
+    depth_points,
+    filtered_depth,
+    moved_beyond,
+    prepare_depth,
+    register,
+)
 from inrslam.slam.sdf_tracking import align_to_sdf
 from inrslam.slam.state import SlamState
 from inrslam.slam.tracking import TrackResult, track_frame
@@ -120,6 +129,8 @@ class SlamSystem:
         self._target_cloud: tuple[int, PreparedCloud] | None = None
         self._local_target: tuple[tuple[int, ...], PreparedCloud] | None = None
         self._kf_points: dict[int, np.ndarray] = {}
+        # the photometric reference (frame index, pyramid), in memory only (rebuilt from the dataset after a resume)
+        self._photo_ref: tuple[int, list[PhotoLevel]] | None = None
 
     def _make_model(self) -> SceneModel:
         """The map the loop trains (a subclass with another mapper may return its own `SceneModel` subclass)."""
@@ -204,15 +215,23 @@ class SlamSystem:
         t0 = time.perf_counter()
         extra: dict = {}
         fallback: str | None
+        noise = depth_noise(frame.depth, cfg.gicp) if cfg.gicp.depth_filter > 0 or cfg.photo.enabled else None
+        if noise is not None:
+            extra["depth_noise"] = round(noise, 6) if math.isfinite(noise) else None
         if cfg.init is PoseInit.GICP:
-            pred = self._gicp_init(i, frame, pred, extra)
+            pred = self._gicp_init(i, frame, pred, extra, noise)
+        cur_pyr = None
+        if cfg.photo.enabled and n_valid_depth > 0 and noise is not None and noise >= cfg.photo.min_depth_noise:
+            pred, cur_pyr = self._photo_refine(i, frame, pred, noise, extra)
         if n_valid_depth == 0:
             # no depth: colour-only tracking is ill-posed at the paper's settings; keep the prediction
             c2w, loss, fallback, iters = pred, float("nan"), "no_valid_depth", 0
         else:
-            if cfg.sdf_track.iters > 0 and (not cfg.sdf_track.only_on_init_failure or "init_fallback" in extra):
+            # the neural map tracks a frame whose initialiser failed, unless the photometric refinement took it over
+            init_failed = "init_fallback" in extra and not extra.get("photo_rescued")
+            if cfg.sdf_track.iters > 0 and (not cfg.sdf_track.only_on_init_failure or init_failed):
                 pred = self._sdf_refine(ft, pred, extra)
-            if cfg.track_iters > 0 and (not cfg.track_only_on_init_failure or "init_fallback" in extra):
+            if cfg.track_iters > 0 and (not cfg.track_only_on_init_failure or init_failed):
                 rays = ft.sample(cfg.track_pixels, self.generator, edge=cfg.track_edge)
                 res = track_frame(self.model, pred, *rays, cfg, self.generator, cfg.max_pose_jump)
                 if math.isfinite(res.best_loss):
@@ -223,7 +242,10 @@ class SlamSystem:
         track_ms = (time.perf_counter() - t0) * 1e3
         self.state.track_ms.append(track_ms)
         self._set_pose(i, c2w)
-        fallback = _joined(extra.pop("init_fallback", None), extra.pop("sdf_fallback", None), fallback)
+        if cur_pyr is not None:
+            self._renew_photo_keyframe(i, cur_pyr, "photo_fallback" in extra)
+        fallback = _joined(extra.pop("init_fallback", None), extra.pop("photo_fallback", None),
+                           extra.pop("sdf_fallback", None), fallback)
         rec = {"type": "track", "frame": i, "loss": loss, "track_ms": track_ms, "iters": iters, **extra}
         if fallback:
             rec["fallback"] = fallback
@@ -292,12 +314,14 @@ class SlamSystem:
             starts.insert(0, torch.as_tensor(base @ reg.T_target_source, dtype=pred.dtype, device=pred.device))
         return starts
 
-    def _gicp_init(self, i: int, frame: Frame, pred: torch.Tensor, rec: dict) -> torch.Tensor:
+    def _gicp_init(self, i: int, frame: Frame, pred: torch.Tensor, rec: dict,
+                   noise: float | None = None) -> torch.Tensor:
         """GICP of frame i's depth onto its target (`slam.gicp.target`: frame i-1, the GICP keyframe, or a local map
         of the last GICP keyframes) from the prediction; the prediction when a check fails (the reason goes to `rec`
-        as init_fallback). Targets are kept in memory and rebuilt from the dataset after a resume."""
+        as init_fallback). Targets are kept in memory and rebuilt from the dataset after a resume. `noise`: the
+        frame's depth noise at 1 m if already estimated."""
         g = self.cfg.slam.gicp
-        points = depth_points(frame.depth, frame.intrinsics, g)
+        points = depth_points(frame.depth, frame.intrinsics, g, noise)
         cur = PreparedCloud(points, g)
         if g.target is GicpTarget.LOCAL_MAP:
             t_idx, target, base = self.state.gicp_kfs[-1], self._local_map(g), np.eye(4)
@@ -324,6 +348,55 @@ class SlamSystem:
             rec["init_fallback"] = f"gicp_{reg.reason}"
             return pred
         return torch.as_tensor(c2w, dtype=pred.dtype, device=pred.device)
+
+    def _pyramid(self, frame: Frame, noise: float | None = None) -> list[PhotoLevel]:
+        """Photometric pyramid of a frame: its colour and its depth after the GICP stage's filter (slam.gicp)."""
+        intr = frame.intrinsics
+        depth = filtered_depth(frame.depth, self.cfg.slam.gicp, noise=noise)
+        return build_pyramid(frame.rgb, depth, (intr.fx, intr.fy, intr.cx, intr.cy), self.cfg.slam.photo.levels)
+
+    def _photo_refine(self, i: int, frame: Frame, pred: torch.Tensor, noise: float,
+                      rec: dict) -> tuple[torch.Tensor, list[PhotoLevel]]:
+        """Photometric alignment of frame i onto the photometric keyframe from `pred` (slam.photo); returns the pose
+        (`pred` when it fails: the reason goes to `rec` as photo_fallback) and the frame's pyramid. It may move a
+        well-conditioned GICP pose by max(`max_step`, `jump_factor` x the median move of recent accepted
+        refinements), a near-degenerate or failed one by `weak_max_step`. Where the
+        initialiser failed and this succeeds, `rec["photo_rescued"]` says the photometric pose stands."""
+        pc = self.cfg.slam.photo
+        k = self.state.photo_kfs[-1]
+        if self._photo_ref is None or self._photo_ref[0] != k:  # after a resume
+            self._photo_ref = (k, self._pyramid(self.dataset[k]))
+        cur = self._pyramid(frame, noise)
+        T_k = self.est[k].double().cpu()
+        T_ik = torch.linalg.inv(pred.double().cpu()) @ T_k
+        res = align_photometric(self._photo_ref[1], cur, T_ik, pc, torch.Generator().manual_seed(self.cfg.seed + i))
+        c2w = T_k @ torch.linalg.inv(res.T_ik)
+        fallback = res.fallback
+        shift = float(torch.linalg.norm(c2w[:3, 3] - pred[:3, 3].double().cpu()))
+        weak = "init_fallback" in rec or rec.get("gicp_degeneracy", 0.0) < pc.weak_degeneracy
+        if fallback is None and shift > step_bound(self.state.photo_shifts, weak, pc):
+            fallback = "photo_jump"
+        if fallback is None:
+            self.state.photo_shifts = (self.state.photo_shifts + [shift])[-pc.jump_window:]
+        rec.update(photo_iters=res.iters, photo_points=res.n_points, photo_target=k,
+                   photo_rms=round(res.rms, 5) if math.isfinite(res.rms) else None,
+                   photo_shift_mm=round(shift * 1e3, 3) if math.isfinite(shift) else None)
+        if fallback:
+            rec["photo_fallback"] = fallback
+            return pred, cur
+        if "init_fallback" in rec and pc.rescue:
+            rec["photo_rescued"] = True
+        return c2w.to(dtype=pred.dtype, device=pred.device), cur
+
+    def _renew_photo_keyframe(self, i: int, pyramid: list[PhotoLevel], failed: bool) -> None:
+        """Frame i becomes the photometric reference once it has moved `kf_dist` / turned `kf_angle` from the
+        current one, or when the alignment onto it failed."""
+        pc = self.cfg.slam.photo
+        k = self.state.photo_kfs[-1]
+        from_kf = (torch.linalg.inv(self.est[k].double()) @ self.est[i].double()).cpu().numpy()
+        if failed or moved_beyond(from_kf, pc.kf_dist, pc.kf_angle):
+            self.state.photo_kfs.append(i)
+            self._photo_ref = (i, pyramid)
 
     def _local_map(self, g: GicpConfig) -> PreparedCloud:
         """World-frame cloud of the last `g.local_map_keyframes` GICP keyframes at their current poses (cached)."""

@@ -1,0 +1,181 @@
+"""Photometric refinement of a pose: direct image alignment of the current frame onto a reference keyframe (torch,
+float64, CPU; no I/O).
+
+Each reference pixel p with depth z and an intensity gradient above a threshold is back-projected, X_k = z K^-1 p,
+moved into the current camera by the relative pose T_ik (reference camera -> current camera), X_i = T_ik X_k, and
+projected; its residual is the intensity difference
+
+    r_p(T_ik) = I_i(pi(X_i)) - I_k(p)                       (I: grey level in [0, 1], bilinear)
+
+Under a left increment T_ik <- exp(xi) T_ik, xi = (rho, omega), dX_i/dxi = [I | -[X_i]_x], so
+
+    dr_p/dxi = grad I_i(pi(X_i)) . dpi/dX (X_i) . [I | -[X_i]_x],
+    dpi/dX = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]
+
+Gauss-Newton with Huber weights solves (J^T W J) xi = -J^T W r, coarse to fine over an image pyramid (each level
+halves the image), and stops on a small step. This is dense visual odometry (Steinbruecker et al. 2011, Kerl et al.
+2013). A textured wall constrains the sliding that leaves depth-only registration degenerate, and the depth only
+enters through the parallax, so noisy depth hurts it far less than it hurts registration (docs/accurate.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from inrslam.geometry.se3 import se3_exp
+
+LUMA = (0.299, 0.587, 0.114)
+
+
+@dataclass
+class PhotoLevel:
+    """One pyramid level: grey image, its central-difference gradients and depth, all (H, W) float64; pinhole
+    (fx, fy, cx, cy) in this level's pixels."""
+
+    gray: Tensor
+    grad_u: Tensor
+    grad_v: Tensor
+    depth: Tensor
+    K: tuple[float, float, float, float]
+
+
+@dataclass
+class PhotoResult:
+    """Result of `align_photometric`."""
+
+    T_ik: Tensor  # (4, 4) float64 refined reference camera -> current camera
+    iters: int  # Gauss-Newton steps over all levels
+    n_points: int  # reference pixels used at the finest level
+    rms: float  # Huber-weighted RMS intensity residual at the finest level (nan if none)
+    fallback: str | None  # "photo_few_points" / "photo_nan" (input pose kept), or None
+
+
+def _gradients(img: Tensor) -> tuple[Tensor, Tensor]:
+    """Central differences (H, W) along u and v; 0 on the border."""
+    gu, gv = torch.zeros_like(img), torch.zeros_like(img)
+    gu[:, 1:-1] = 0.5 * (img[:, 2:] - img[:, :-2])
+    gv[1:-1] = 0.5 * (img[2:] - img[:-2])
+    return gu, gv
+
+
+def _half(img: Tensor) -> Tensor:
+    """2x2 box average (odd sizes drop the last row / column)."""
+    H, W = img.shape[0] // 2 * 2, img.shape[1] // 2 * 2
+    i = img[:H, :W]
+    return 0.25 * (i[0::2, 0::2] + i[1::2, 0::2] + i[0::2, 1::2] + i[1::2, 1::2])
+
+
+def _half_depth(d: Tensor) -> Tensor:
+    """2x2 average of depth where all four are valid, else 0 (a block across an edge or a hole is invalid)."""
+    H, W = d.shape[0] // 2 * 2, d.shape[1] // 2 * 2
+    i = d[:H, :W]
+    blocks = torch.stack([i[0::2, 0::2], i[1::2, 0::2], i[0::2, 1::2], i[1::2, 1::2]])
+    return torch.where((blocks > 0).all(dim=0), blocks.mean(dim=0), torch.zeros_like(blocks[0]))
+
+
+def build_pyramid(rgb: np.ndarray, depth: np.ndarray, K: tuple[float, float, float, float],
+                  levels: int) -> list[PhotoLevel]:
+    """(H, W, 3) colour in [0, 1] and (H, W) depth in metres (0 = invalid) -> `levels` levels, finest first.
+    A level's intrinsics: f / 2 and (c + 0.5) / 2 - 0.5 (pixel centres at integers)."""
+    g = torch.as_tensor(np.asarray(rgb, dtype=np.float64) @ np.asarray(LUMA))
+    d = torch.as_tensor(np.asarray(depth, dtype=np.float64))
+    d = torch.where(torch.isfinite(d) & (d > 0), d, torch.zeros_like(d))
+    fx, fy, cx, cy = (float(v) for v in K)
+    out = []
+    for lvl in range(levels):
+        if lvl:
+            g, d = _half(g), _half_depth(d)
+            fx, fy, cx, cy = fx / 2, fy / 2, (cx + 0.5) / 2 - 0.5, (cy + 0.5) / 2 - 0.5
+        out.append(PhotoLevel(g, *_gradients(g), d, (fx, fy, cx, cy)))
+    return out
+
+
+def _sample(stack: Tensor, u: Tensor, v: Tensor) -> Tensor:
+    """Bilinear samples (C, N) of a (C, H, W) stack at pixel coordinates u, v (N,)."""
+    H, W = stack.shape[-2:]
+    grid = torch.stack([2 * u / (W - 1) - 1, 2 * v / (H - 1) - 1], dim=-1)[None, None]
+    return F.grid_sample(stack[None], grid, mode="bilinear", align_corners=True)[0, :, 0]
+
+
+def reference_points(level: PhotoLevel, grad_threshold: float, max_points: int,
+                     generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    """Informative reference pixels: valid depth and |grad I| > grad_threshold, at most `max_points` (a random
+    subset). Returns X_k (N, 3) camera-frame points in metres and their intensities (N,)."""
+    mag = torch.hypot(level.grad_u, level.grad_v)
+    v, u = torch.nonzero((level.depth > 0) & (mag > grad_threshold), as_tuple=True)
+    if v.numel() > max_points:
+        keep = torch.randperm(v.numel(), generator=generator)[:max_points]
+        v, u = v[keep], u[keep]
+    fx, fy, cx, cy = level.K
+    z = level.depth[v, u]
+    X = torch.stack([(u.double() - cx) / fx * z, (v.double() - cy) / fy * z, z], dim=-1)
+    return X, level.gray[v, u]
+
+
+def photometric_residuals(cur: PhotoLevel, X_k: Tensor, I_k: Tensor, T_ik: Tensor,
+                          border: int = 1) -> tuple[Tensor, Tensor, Tensor]:
+    """Residuals r (N,), Jacobians J (N, 6) w.r.t. a left twist (rho, omega) of T_ik, and a validity mask (N,)
+    (in front of the camera, projecting inside the image less `border` pixels); see the module docstring."""
+    H, W = cur.gray.shape
+    fx, fy, cx, cy = cur.K
+    X = X_k @ T_ik[:3, :3].T + T_ik[:3, 3]
+    x, y, z = X.unbind(-1)
+    zs = torch.where(z > 1e-6, z, torch.ones_like(z))
+    u, v = fx * x / zs + cx, fy * y / zs + cy
+    valid = (z > 1e-6) & (u >= border) & (u <= W - 1 - border) & (v >= border) & (v <= H - 1 - border)
+    s = _sample(torch.stack([cur.gray, cur.grad_u, cur.grad_v]), u.clamp(0, W - 1), v.clamp(0, H - 1))
+    r = s[0] - I_k
+    # g = grad I . dpi/dX (N, 3); then g [I | -[X]_x] = (g, X x g)
+    gu, gv = s[1] * fx / zs, s[2] * fy / zs
+    g = torch.stack([gu, gv, -(gu * x + gv * y) / zs], dim=-1)
+    J = torch.cat([g, torch.linalg.cross(X, g)], dim=-1)
+    return torch.where(valid, r, torch.zeros_like(r)), J * valid[:, None], valid
+
+
+def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor, cfg,
+                      generator: torch.Generator | None = None) -> PhotoResult:
+    """Coarse-to-fine Gauss-Newton of T_ik (reference camera -> current camera, (4, 4)) on the photometric residuals.
+
+    Args:
+        ref, cur: pyramids of the reference keyframe (with depth) and the current frame (`build_pyramid`).
+        cfg: `PhotoConfig` (iters, grad_threshold, max_points, huber, min_points, tol); a level needs
+            min_points / 4^level valid residuals (level 0 = finest).
+    """
+    start = T_ik.detach().to(torch.float64).clone()
+    T = start.clone()
+    total, n_used, rms = 0, 0, float("nan")
+    for lvl in reversed(range(len(ref))):
+        X_k, I_k = reference_points(ref[lvl], cfg.grad_threshold, cfg.max_points, generator)
+        for _ in range(cfg.iters):
+            r, J, valid = photometric_residuals(cur[lvl], X_k, I_k, T)
+            n_used = int(valid.sum())
+            if n_used < cfg.min_points / 4 ** lvl:
+                return PhotoResult(start, total, n_used, rms, "photo_few_points")
+            a = r.abs()
+            w = torch.where(a <= cfg.huber, torch.ones_like(a), cfg.huber / a.clamp_min(1e-12)) * valid
+            H = (J * w[:, None]).T @ J
+            b = (J * w[:, None]).T @ r
+            xi = -torch.linalg.solve(H + 1e-9 * torch.diagonal(H).mean() * torch.eye(6, dtype=H.dtype), b)
+            rms = float(torch.sqrt((w * r * r).sum() / w.sum().clamp_min(1e-12)))
+            total += 1
+            if not bool(torch.isfinite(xi).all()):
+                return PhotoResult(start, total, n_used, rms, "photo_nan")
+            T = se3_exp(xi) @ T
+            if float(xi.norm()) < cfg.tol:
+                break
+    return PhotoResult(T, total, n_used, rms, None)
+
+
+def step_bound(recent: list[float], weak: bool, cfg) -> float:
+    """How far (metres) a photometric refinement may move the pose it started from: `cfg.weak_max_step` when the
+    geometric pose is weak (GICP failed or its view is near-degenerate), else max(`cfg.max_step`,
+    `cfg.jump_factor` x median of `recent`, the moves of the last accepted refinements). Example: max_step 1 cm,
+    factor 4, recent moves of 5 mm -> 2 cm."""
+    if weak:
+        return cfg.weak_max_step
+    return max(cfg.max_step, cfg.jump_factor * float(np.median(recent)) if recent else 0.0)
