@@ -360,8 +360,8 @@ class SlamSystem:
         """Photometric alignment of frame i onto the photometric keyframe from `pred` (slam.photo); returns the pose
         (`pred` when it fails: the reason goes to `rec` as photo_fallback) and the frame's pyramid. It may move a
         well-conditioned GICP pose by max(`max_step`, `jump_factor` x the median move of recent accepted
-        refinements), a near-degenerate or failed one by `weak_max_step`. Where the
-        initialiser failed and this succeeds, `rec["photo_rescued"]` says the photometric pose stands."""
+        refinements), a near-degenerate or failed one by `weak_max_step`. Where the initialiser failed and this
+        succeeds, `rec["photo_rescued"]` says the photometric pose stands."""
         pc = self.cfg.slam.photo
         k = self.state.photo_kfs[-1]
         if self._photo_ref is None or self._photo_ref[0] != k:  # after a resume
