@@ -116,3 +116,13 @@ def test_step_bound_follows_the_recent_moves_above_its_floor():
     assert step_bound([0.001, 0.002, 0.0015], False, cfg) == 0.01  # synthetic depth: mm moves, the floor holds
     assert step_bound([0.004, 0.005, 0.006], False, cfg) == pytest.approx(0.02)  # real sensors: 4 x the median
     assert step_bound([0.004, 0.005, 0.006], True, cfg) == 0.05  # a weak geometric pose
+
+
+def test_a_view_without_gradient_where_the_points_land_is_a_fallback_not_a_crash():
+    rgb, depth = wall_view(C2W_A)
+    ref = build_pyramid(rgb, depth, K, 1)
+    flat = build_pyramid(np.full_like(rgb, 0.5), depth, K, 1)  # the current image: no gradient anywhere
+    start = torch.eye(4, dtype=torch.float64)
+    res = align_photometric(ref, flat, start, PhotoConfig(enabled=True, grad_threshold=0.002),
+                            torch.Generator().manual_seed(0))
+    assert res.fallback == "photo_nan" and torch.equal(res.T_ik, start)

@@ -160,9 +160,12 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
             w = torch.where(a <= cfg.huber, torch.ones_like(a), cfg.huber / a.clamp_min(1e-12)) * valid
             H = (J * w[:, None]).T @ J
             b = (J * w[:, None]).T @ r
-            xi = -torch.linalg.solve(H + 1e-9 * torch.diagonal(H).mean() * torch.eye(6, dtype=H.dtype), b)
             rms = float(torch.sqrt((w * r * r).sum() / w.sum().clamp_min(1e-12)))
             total += 1
+            try:
+                xi = -torch.linalg.solve(H + 1e-9 * torch.diagonal(H).mean() * torch.eye(6, dtype=H.dtype), b)
+            except torch.linalg.LinAlgError:  # no intensity gradient where the points land: nothing constrained
+                xi = torch.full((6,), float("nan"), dtype=H.dtype)
             if not bool(torch.isfinite(xi).all()):
                 return PhotoResult(start, total, n_used, rms, "photo_nan")
             T = se3_exp(xi) @ T
