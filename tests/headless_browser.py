@@ -105,3 +105,40 @@ def _drive(ws, url: str, ready_js: str, size: tuple[int, int], timeout: float, t
     text = call("Runtime.evaluate", expression="document.body.innerText", returnByValue=True)["result"]["value"]
     png = base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
     return PageLoad(ready=ready, png=png, text=text, errors=errors)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python tests/headless_browser.py URL_OR_FILE OUT.png [--size 1100x1400] [--ready JS] [--then JS]
+    [--palette]`: a screenshot of a page (how docs/images/report*.png are made; docs/benchmark.md)."""
+    import argparse
+    from pathlib import Path
+
+    p = argparse.ArgumentParser(prog="headless_browser", description=main.__doc__)
+    p.add_argument("url", help="http(s) URL, or a local file (e.g. a report's index.html)")
+    p.add_argument("out", help="PNG to write")
+    p.add_argument("--size", default="1100x1400", help="viewport WIDTHxHEIGHT in pixels")
+    p.add_argument("--ready", default="document.readyState === 'complete'", help="JavaScript condition to wait for")
+    p.add_argument("--then", default="", help="JavaScript run before the screenshot (e.g. scroll to a section)")
+    p.add_argument("--palette", action="store_true", help="save with 256 colours (a smaller file)")
+    args = p.parse_args(argv)
+    url = args.url if "://" in args.url else Path(args.url).resolve().as_uri()
+    width, height = (int(x) for x in args.size.lower().split("x"))
+    eager = "document.querySelectorAll('img').forEach(i => i.loading = 'eager')"  # lazy pictures load too
+    page = load_page(url, f"({eager}, {args.ready})", size=(width, height), then_js=args.then)
+    png = page.png
+    if args.palette:
+        import io
+
+        from PIL import Image
+
+        buf = io.BytesIO()
+        Image.open(io.BytesIO(png)).convert("RGB").quantize(256).save(buf, format="PNG", optimize=True)
+        png = buf.getvalue()
+    Path(args.out).write_bytes(png)
+    print(f"{args.out}: {len(png) // 1024} KB{'' if page.ready else ' (the ready condition never held)'}"
+          + "".join(f"\n  page error: {e}" for e in page.errors))
+    return 0 if page.ready and not page.errors else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

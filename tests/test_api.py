@@ -52,6 +52,11 @@ def test_run_returns_the_run_read_back(finished):
     w, h = Image.open(r.root / "renders" / f"frame_{frames[0]:06d}.png").size
     assert (w, h) == (4 * r.intrinsics.width, r.intrinsics.height)
     assert Image.open(r.root / "trajectory.png").size[0] > 100  # the top-down trajectory picture
+    from inrslam.eval.mesh_thumbnail import BACKGROUND, THUMBNAIL_SIZE
+
+    mesh_png = np.asarray(Image.open(r.root / "mesh.png").convert("RGB"))  # the final mesh, drawn
+    assert mesh_png.shape == (THUMBNAIL_SIZE[1], THUMBNAIL_SIZE[0], 3)
+    assert (mesh_png != BACKGROUND).any(axis=2).mean() > 0.05
 
 
 def test_load_run_is_read_only_and_renders_the_map(finished):

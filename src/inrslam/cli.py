@@ -15,12 +15,15 @@ Errors a user can fix print one line `inrslam COMMAND: error: ...` and exit 2; C
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import re
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any, Iterator
 
 from inrslam.errors import InrslamError
 
@@ -32,6 +35,7 @@ DEVICE_RE = re.compile(r"auto|cpu|cuda(:\d+)?")
 VIEWER_PORT = 8080
 VIEWER_HOST = "127.0.0.1"
 OVERRIDE_RE = re.compile(r"[A-Za-z_][\w.]*=.*", re.S)  # a config override KEY=VALUE
+_T0 = time.perf_counter()  # the status lines count seconds from here (the command's start)
 
 
 def _registry_help() -> tuple[str, str]:
@@ -211,12 +215,20 @@ def _check_resumable_data(run_dir: str) -> None:
 def _run_command(args) -> int:
     from rich.console import Console
 
+    console = Console(stderr=False)
+    with _status_display(console, quiet=args.quiet) as display:
+        return _run_with_display(args, console, display)
+
+
+def _run_with_display(args, console, display: "_StatusDisplay | None") -> int:
+    if display is not None:
+        display.line("loading torch and the SLAM code")
     from inrslam.api import absolute_paths
     from inrslam.config.loader import load_config
     from inrslam.runner import resume_slam, run_slam
 
-    console = Console(stderr=False)
     live = None
+    progress_cb = _frame_progress(display)
     if args.resume:
         given = [f"--{k.replace('_', '-')}" for k in ("data", "out", "encoding", "render", "max_frames", "config",
                                                       "dataset", "device", "seed", "poses")
@@ -226,12 +238,7 @@ def _run_command(args) -> int:
                                f"with {', '.join(given + list(args.overrides))}")
         _check_resumable_data(args.resume)
         live = _start_live_viewer(args, console) if args.viewer else None
-        progress_cb, finish = _progress(console, quiet=args.quiet)
-        progress_cb = _chain(progress_cb, live)
-        try:
-            run_dir = resume_slam(args.resume, progress=progress_cb)
-        finally:
-            finish()
+        run_dir = resume_slam(args.resume, progress=_chain(progress_cb, live))
     else:
         if not args.out:
             raise InrslamError("inrslam run: --out DIR is required (or --resume DIR)")
@@ -247,12 +254,9 @@ def _run_command(args) -> int:
         _check_registry_names(cfg)
         _check_device(cfg)
         live = _start_live_viewer(args, console) if args.viewer else None
-        progress_cb, finish = _progress(console, quiet=args.quiet)
-        progress_cb = _chain(progress_cb, live)
-        try:
-            run_dir = run_slam(cfg, args.out, progress=progress_cb, overwrite=args.overwrite)
-        finally:
-            finish()
+        run_dir = run_slam(cfg, args.out, progress=_chain(progress_cb, live), overwrite=args.overwrite)
+    if display is not None:
+        display.close()
     if not args.quiet:
         _print_metrics(console, run_dir)
     if live is not None:
@@ -326,35 +330,129 @@ def _check_registry_names(cfg) -> None:
         raise ConfigError(f"config key 'render.name': {RENDERERS.unknown_message(cfg.render.name)}")
 
 
-def _progress(console, quiet: bool):
-    if quiet:
-        return None, lambda: None
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+class _StatusDisplay:
+    """What `inrslam run` / `inrslam eval` show while they work: one line per step, prefixed by the seconds since
+    the command started, and a bar per counted step (initialisation, frames, held-out renders) with its ETA.
 
-    prog = Progress(TextColumn("[bold]SLAM"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
-                    TimeElapsedColumn(), console=console, transient=False)
-    state = {"task": None, "t0": None, "ate": None}
+    Fed by the library's status records (`inrslam.status`, through `_StatusHandler`) and the SLAM loop's progress
+    callback (`_frame_progress`). Bars stay on the terminal when done; a line after finished bars starts below them.
+    """
+
+    def __init__(self, console, t0: float | None = None, clock=time.perf_counter):
+        self.console = console
+        self.clock = clock
+        self.t0 = _T0 if t0 is None else t0
+        self.prog: Any = None  # rich Progress while bars are drawn
+        self.tasks: dict[str, tuple[int, float, int]] = {}  # name -> (task id, time and count of its first update)
+
+    def line(self, text: str) -> None:
+        """A status line (below the bars when they are all done, above a bar still running)."""
+        if self.prog is not None and all(t.finished for t in self.prog.tasks):
+            self.close()
+        self.console.print(f"[dim]{self.clock() - self.t0:6.1f} s[/dim]  {text}", highlight=False)
+
+    def count(self, name: str, done: int, total: int, info: str = "") -> None:
+        """Bar `name` at `done` of `total`; `info` is shown beside it, then the ETA."""
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        if self.prog is None:
+            self.prog = Progress(TextColumn("[bold]{task.description:<7}"), BarColumn(), MofNCompleteColumn(),
+                                 TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=self.console,
+                                 transient=False)
+            self.prog.start()
+            self.tasks = {}
+        now = self.clock()
+        if name not in self.tasks:
+            self.tasks[name] = (self.prog.add_task(name, total=total, completed=done, info=""), now, done)
+        task, t_first, first = self.tasks[name]
+        eta = eta_text(now - t_first, done - first, total - done)
+        self.prog.update(task, completed=done, total=total, info="  ".join(x for x in (info, eta) if x))
+
+    def close(self) -> None:
+        """Stop drawing the bars (they stay on the terminal)."""
+        if self.prog is not None:
+            self.prog.stop()
+            self.prog = None
+
+
+def eta_text(elapsed_s: float, done: int, remaining: int) -> str:
+    """'ETA 2:05' from the rate so far (`done` steps in `elapsed_s`), 'ETA –' before the first step, '' at the end."""
+    if remaining <= 0:
+        return ""
+    if done <= 0 or elapsed_s <= 0:
+        return "ETA –"
+    return f"ETA {_clock_time(elapsed_s / done * remaining)}"
+
+
+def _clock_time(seconds: float) -> str:
+    """'0:42', '12:05', '1:02:05'."""
+    s = int(round(seconds))
+    h, rest = divmod(s, 3600)
+    return f"{h}:{rest // 60:02d}:{rest % 60:02d}" if h else f"{rest // 60}:{rest % 60:02d}"
+
+
+class _StatusHandler(logging.Handler):
+    """Hands the library's status records (`inrslam.status`) to a `_StatusDisplay`."""
+
+    def __init__(self, display: _StatusDisplay):
+        super().__init__(logging.INFO)
+        self.display = display
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from inrslam.status import progress_of
+
+        try:
+            counted = progress_of(record)
+            if counted is None:
+                self.display.line(record.getMessage())
+            else:
+                self.display.count(record.getMessage(), *counted)
+        except Exception:  # noqa: BLE001 - a display problem must never stop a run
+            self.handleError(record)
+
+
+@contextmanager
+def _status_display(console, quiet: bool) -> Iterator[_StatusDisplay | None]:
+    """A `_StatusDisplay` receiving the "inrslam" status records while the block runs (None when `quiet`)."""
+    if quiet:
+        yield None
+        return
+    from inrslam.status import LOGGER
+
+    display = _StatusDisplay(console)
+    handler = _StatusHandler(display)
+    log = logging.getLogger(LOGGER)
+    level = log.level
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    try:
+        yield display
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(level)
+        display.close()
+
+
+def _frame_progress(display: _StatusDisplay | None):
+    """The SLAM loop's progress callback drawing the frame bar on `display` (None without a display): frame, frames
+    per second and the ATE so far (every 10 frames, with ground truth), then the ETA."""
+    if display is None:
+        return None
+    state: dict = {"t0": None, "start": 0, "ate": None}
 
     def cb(i: int, n: int, info: dict) -> None:
-        if state["task"] is None:
-            prog.start()
-            state["task"] = prog.add_task("slam", total=n, info="")
-            state["t0"] = time.perf_counter()
-            state["start"] = i
+        if state["t0"] is None:
+            state["t0"], state["start"] = time.perf_counter(), i
         if "gt" in info and (i % 10 == 0 or i == n - 1):
             state["ate"] = _current_ate(info["est"], info["gt"]) or state["ate"]
-        done = i + 1 - state["start"]
-        fps = done / max(time.perf_counter() - state["t0"], 1e-9)
-        text = f"frame {i}  {fps:.2f} fps"
+        text = f"frame {i}"
+        if i > state["start"]:
+            text += f"  {(i - state['start']) / max(time.perf_counter() - state['t0'], 1e-9):.2f} fps"
         if state["ate"] is not None:
             text += f"  ATE {state['ate'] * 100:.2f} cm"
-        prog.update(state["task"], completed=i + 1, info=text)
+        display.count("SLAM", i + 1, n, info=text)
 
-    def finish() -> None:
-        if state["task"] is not None:
-            prog.stop()
-
-    return cb, finish
+    return cb
 
 
 def _current_ate(est, gt) -> float | None:
@@ -373,13 +471,17 @@ def _print_metrics(console, run_dir: Path) -> None:
     from inrslam.eval.run import format_table
     from inrslam.io.rundir import RunDir
 
-    metrics = RunDir(run_dir).read_metrics() or {}
+    rd = RunDir(run_dir)
+    metrics = rd.read_metrics() or {}
     console.print(format_table(metrics))
     if metrics.get("lost_frames"):
         console.print(f"[yellow]warning:[/yellow] tracking was lost on {metrics['lost_frames']} frame(s) "
                       f"('tracking_lost' in log.jsonl): poses after them are unreliable; try a smaller data.stride "
                       f"or slam.lost.recover=true")
-    console.print(f"Outputs in [bold]{run_dir}[/bold]: trajectory.txt, mesh.ply, metrics.json, log.jsonl, config.yaml")
+    pictures = [p.name + ("/" if p.is_dir() else "") for p in (rd.trajectory_plot, rd.mesh_thumbnail, rd.renders)
+                if p.exists()]
+    console.print(f"Outputs in [bold]{run_dir}[/bold]: trajectory.txt, mesh.ply, metrics.json, log.jsonl, config.yaml"
+                  + (f"; pictures: {', '.join(pictures)}" if pictures else ""))
 
 
 def _scenes_command(args) -> int:
@@ -420,7 +522,8 @@ def _eval_command(args) -> int:
 
     console = Console()
     if args.run_dir:
-        metrics = ev.evaluate_run(args.run_dir, _run_eval_config(args))
+        with _status_display(console, quiet=args.json):
+            metrics = ev.evaluate_run(args.run_dir, _run_eval_config(args))
     elif args.traj or args.gt:
         if not (args.traj and args.gt):
             raise InrslamError("inrslam eval: --traj and --gt go together")
@@ -561,7 +664,8 @@ def _one_line_warnings() -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     _one_line_warnings()
-    parser = build_parser(registry_help=argv[:1] == ["run"])
+    # the registries' help text imports torch: only for `run --help`, so `run` can say what it loads first
+    parser = build_parser(registry_help=argv[:1] == ["run"] and ("-h" in argv or "--help" in argv))
     args, extra = parser.parse_known_args(argv)
     # KEY=VALUE overrides anywhere on the line: argparse takes one run of positionals, the later ones come back here
     if extra and getattr(args, "overrides", None) is not None and all(OVERRIDE_RE.fullmatch(x) for x in extra):

@@ -39,11 +39,24 @@ def test_worker_records_failure_without_raising(tmp_path):
     assert json.loads((tmp_path / run["name"] / "bench.json").read_text()) == run
 
 
-def test_local_pool_records_failures_crashes_and_resumes(tmp_path):
+def test_local_pool_records_failures_crashes_and_resumes(tmp_path, capsys):
     out = tmp_path / "sweep"
     s = spec("dense", "fail", "crash", "hash")
-    res = run_sweep(s, out, jobs=2, run_fn=FAKE, validate=False, quiet=True)
+    res = run_sweep(s, out, jobs=2, run_fn=FAKE, validate=False)
     assert len(res.runs) == 8
+    # printed as it goes: a first line, one line per finished run (ATE, time, counts, ETA), the summary
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "bench: 8 runs to do, 2 at a time on the local executor"
+    per_run = [ln for ln in lines if ln.startswith("[")]
+    assert [ln.split("]")[0] for ln in per_run] == [f"[{k}/8" for k in range(1, 9)]
+    for ln in per_run:
+        name = ln.split()[2].rstrip(":")
+        if "__fail__" in name or "__crash__" in name:
+            assert " failed " in ln
+        else:
+            assert f"ATE {metrics_of(out, name)['ate_rmse_m'] * 100:.2f} cm" in ln
+    assert all("ETA" in ln for ln in per_run[:-1]) and per_run[-1].endswith("done 8, running 0, failed 4, waiting 0")
+    assert lines[-1].startswith("bench: 8 runs in")
     assert res.count("complete") == 4 and res.count("failed") == 4 and not res.interrupted
     status = json.loads((out / "sweep_status.json").read_text())
     assert status["state"] == "finished" and status["counts"]["complete"] == 4 and status["counts"]["failed"] == 4

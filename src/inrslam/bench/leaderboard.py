@@ -176,6 +176,7 @@ class Row:
     mean: dict[str, float | None] = field(default_factory=dict)
     std: dict[str, float | None] = field(default_factory=dict)
     best: dict[str, bool] = field(default_factory=dict)
+    why: dict[str, str] = field(default_factory=dict)  # column key -> why it has no value ('' when it has one)
 
 
 def _mean_std(vals: list[float]) -> tuple[float | None, float | None]:
@@ -200,9 +201,54 @@ def aggregate(records: list[RunRecord], columns: tuple[Column, ...] = COLUMNS) -
         row = Row(render=ren, encoding=enc, preset=preset, runs=sorted(r.name for r in recs), values=values)
         for c in columns:
             row.mean[c.key], row.std[c.key] = _mean_std(values[c.key])
+            row.why[c.key] = missing_reason(recs, c) if row.mean[c.key] is None else ""
         rows.append(row)
     mark_best(rows, columns)
     return rows
+
+
+# words of the evaluation notes (metrics.json `eval_notes`) that explain a missing value of these metrics
+NOTE_WORDS = {"acc_m": ("Acc/Comp", "mesh metrics"), "comp_m": ("Acc/Comp", "mesh metrics"),
+              "comp_ratio": ("Acc/Comp", "mesh metrics"), "ate_rmse_m": ("ATE",)}
+
+
+def missing_reason(records: list[RunRecord], col: Column) -> str:
+    """Why the runs have no value for `col`: the first evaluation note that explains it, else what metrics.json
+    holds; one clause per distinct reason, with the number of runs when several share it."""
+    reasons: dict[str, int] = {}
+    for r in records:
+        words = NOTE_WORDS.get(col.metric, ()) + (col.metric,)
+        notes = [n for n in (r.metrics.get("eval_notes") or []) if any(w in str(n) for w in words)]
+        if notes:
+            why = str(notes[0])
+        elif col.metric not in r.metrics:
+            why = f"metrics.json has no {col.metric}"
+        else:
+            why = f"{col.metric} is null in metrics.json"
+        reasons[why] = reasons.get(why, 0) + 1
+    if not reasons:
+        return "no complete run"
+    return "; ".join(why if n == 1 else f"{why} ({n} runs)" for why, n in reasons.items())
+
+
+def missing_notes(rows: list[Row], columns: tuple[Column, ...] = COLUMNS) -> list[tuple[str, str]]:
+    """The distinct reasons for the '–' cells of a table, in order of appearance, each with where it applies:
+    [(reason, 'Acc [cm], Comp [cm]: every row; ATE [cm]: SDF(direct) / Dense')]."""
+    where: dict[str, dict[str, list[str]]] = {}
+    for c in columns:
+        for r in rows:
+            if r.mean.get(c.key) is None:
+                why = r.why.get(c.key) or "no value"
+                where.setdefault(why, {}).setdefault(c.title, []).append(
+                    f"{render_label(r.render)} / {encoding_label(r.encoding)}" + (f" [{r.preset}]" if r.preset else ""))
+    out = []
+    for why, cols in where.items():
+        by_rows: dict[str, list[str]] = {}  # the same rows for several columns: named once
+        for title, labels in cols.items():
+            key = "every row" if len(labels) == len(rows) else ", ".join(labels)
+            by_rows.setdefault(key, []).append(title)
+        out.append((why, "; ".join(f"{', '.join(titles)}: {key}" for key, titles in by_rows.items())))
+    return out
 
 
 def mark_best(rows: list[Row], columns: tuple[Column, ...] = COLUMNS) -> None:
@@ -265,6 +311,9 @@ def to_markdown(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, title: s
         lines.append("| " + " | ".join(cells) + " |")
     if not rows:
         lines.append("| " + " | ".join([MISSING] * len(head)) + " |")
+    notes = missing_notes(rows, columns)
+    if notes:
+        lines += [""] + [f"- {MISSING}: {why} ({cells})" for why, cells in notes]
     return "\n".join(lines) + "\n"
 
 
@@ -323,12 +372,15 @@ def to_latex(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, caption: st
 
 
 def to_html(rows: list[Row], columns: tuple[Column, ...] = COLUMNS) -> str:
-    """HTML <table> (best in <b>), for the report page."""
+    """HTML <table> (best in <b>), for the report page; a '–' cell carries a footnote number (and a tooltip) that
+    the notes under the table explain."""
     import html
 
     preset = _show_preset(rows)
     head = ["G", "F"] + (["preset"] if preset else []) + ["runs"] + [
         c.title + (" ↑" if c.higher_better else " ↓") for c in columns]
+    notes = missing_notes(rows, columns)
+    number = {why: k + 1 for k, (why, _) in enumerate(notes)}
     out = ["<table>", "<tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"]
     for r in rows:
         cells = [render_label(r.render), encoding_label(r.encoding)] + ([r.preset] if preset else []) + [
@@ -336,7 +388,18 @@ def to_html(rows: list[Row], columns: tuple[Column, ...] = COLUMNS) -> str:
         tds = [f"<td>{html.escape(x)}</td>" for x in cells]
         for c in columns:
             text = html.escape(format_cell(r, c))
-            tds.append(f"<td class='num'><b>{text}</b></td>" if r.best.get(c.key) else f"<td class='num'>{text}</td>")
+            if r.mean.get(c.key) is None:
+                why = r.why.get(c.key) or "no value"
+                tds.append(f"<td class='num missing' title='{html.escape(why, quote=True)}'>{text}"
+                           f"<sup>{number[why]}</sup></td>")
+            elif r.best.get(c.key):
+                tds.append(f"<td class='num'><b>{text}</b></td>")
+            else:
+                tds.append(f"<td class='num'>{text}</td>")
         out.append("<tr>" + "".join(tds) + "</tr>")
     out.append("</table>")
+    if notes:
+        out.append("<ol class='notes'>" + "".join(
+            f"<li>{MISSING}: {html.escape(why)} <span class='where'>({html.escape(cells)})</span></li>"
+            for why, cells in notes) + "</ol>")
     return "\n".join(out)

@@ -22,6 +22,7 @@ import yaml
 
 from inrslam.bench.executors import ExecutorOptions, make_executor
 from inrslam.bench.spec import RunSpec, expand, load_spec, validate_runs
+from inrslam.bench.sweep_progress import SweepProgress
 from inrslam.bench.worker import fn_path
 from inrslam.errors import ConfigError
 from inrslam.io.atomic import write_json, write_text
@@ -144,7 +145,8 @@ def run_sweep(spec, out, jobs: int = 1, executor: str = "local", address: str | 
         report: build the leaderboard at the end (`build_report(out)`).
         on_result: called with each finished run's result; returning False stops the sweep (remaining runs stay
             pending; re-running resumes).
-        quiet: do not print the final one-line summary.
+        quiet: print nothing (otherwise: a first line, one line per finished run with its ATE, time, the counts and
+            an ETA (`inrslam.bench.sweep_progress`), and a one-line summary).
         executor_options: more `ExecutorOptions` (cpus_per_run, gpus_per_run, mem_gb, cluster, poll_s).
     """
     from inrslam.bench.report import build_report
@@ -180,12 +182,17 @@ def run_sweep(spec, out, jobs: int = 1, executor: str = "local", address: str | 
     _write_status(out, res, meta, "running")
     calls = [{"run": r.to_dict(), "out_dir": str(out), "run_fn": fn_path(run_fn)} for r in todo]
     state = "finished"
+    shown = SweepProgress(len(todo), len(runs) - len(todo), jobs, executor)
+    if not quiet:
+        print(shown.start_line(), flush=True)
     stream = ex.run(calls) if calls else iter(())
     try:
         for result in stream:
             _record(out, result)
             res.results[result["name"]] = result
             _write_status(out, res, meta, "running")
+            if not quiet:
+                print(shown.finished(result), flush=True)
             if on_result is not None and on_result(result) is False:
                 res.interrupted, state = True, "interrupted"
                 break

@@ -7,6 +7,9 @@ from typing import Callable
 import numpy as np
 
 from inrslam.eval.image import depth_l1, psnr, ssim
+from inrslam.status import logger, progress
+
+log = logger(__name__)
 
 DEPTH_ERROR_MAX = 0.10  # metres: the top of the error colour scale of the panels
 
@@ -44,7 +47,7 @@ def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: in
     """
     idx = list(range(min(offset, len(dataset) - 1), len(dataset), every))[:max_frames]
     ps, ss, dl = [], [], []
-    for i in idx:
+    for k, i in enumerate(idx):
         frame = dataset[i]
         rgb, depth = render(poses[i], frame.intrinsics)
         rgb = np.clip(_np(rgb), 0.0, 1.0)
@@ -54,6 +57,7 @@ def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: in
             dl.append(float(depth_l1(_np(depth), frame.depth)))
         if sink is not None:
             sink(i, heldout_panel(frame.rgb, rgb, _np(depth), frame.depth))
+        progress(log, "renders", k + 1, len(idx))
     return {"psnr_db": float(np.mean(ps)) if ps else None, "ssim": float(np.mean(ss)) if ss else None,
             "depth_l1_m": float(np.mean(dl)) if dl else None, "heldout_frames": idx}
 

@@ -17,14 +17,17 @@ import numpy as np
 import trimesh
 from rich.table import Table
 
-from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.errors import DataError
 from inrslam.eval.config import Alignment, EvalConfig
 from inrslam.eval.mesh import GT_CULL_MAX_EDGE, cull_mesh, mesh_metrics, subdivide_to_edge
 from inrslam.eval.trajectory import associate, ate, drift_per_100, rpe
+from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.io.atomic import atomic_path
 from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import read_tum
+from inrslam.status import logger, stage
+
+log = logger(__name__)
 
 PathLike = Union[str, os.PathLike]
 
@@ -163,7 +166,8 @@ def associated_gt(ts_est: np.ndarray, ts_gt: np.ndarray, gt: np.ndarray, max_dif
 # run directories
 
 
-def _keyframe_rows(run_dir: Path, run_info: dict, ts_est: np.ndarray, max_diff: float, notes: list) -> Optional[np.ndarray]:
+def _keyframe_rows(run_dir: Path, run_info: dict, ts_est: np.ndarray, max_diff: float,
+                   notes: list) -> Optional[np.ndarray]:
     """Rows of trajectory.txt that are keyframes (frame indices -> rows via run_info timestamps)."""
     kf = run_info.get("keyframes")
     if kf is None and RunDir(run_dir).keyframes.is_file():
@@ -277,6 +281,7 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
     ts_est, est = read_tum(est_path)
     res["frames"] = int(len(est))
     if gt_cams is not None:
+        stage(log, f"evaluation: ATE / RPE of {len(est)} poses ({Alignment(cfg.align).value} alignment)")
         gt_full = associated_gt(ts_est, ts_gt, gt, cfg.max_time_diff)
         rows = _keyframe_rows(run_dir, run_info, ts_est, cfg.max_time_diff, notes)
         res.update(trajectory_metrics(est, gt_full, rows, cfg.align, cfg.rpe_delta))
@@ -345,9 +350,12 @@ def _check_finished(run_dir: Path, run_info: Mapping[str, Any]) -> None:
 def _mesh_eval(rec: trimesh.Trimesh, gt: trimesh.Trimesh, cams: np.ndarray, intr: Intrinsics, cfg: EvalConfig,
                culled_out: Optional[PathLike] = None) -> dict:
     cams = culling_cameras(cams, cfg)
+    stage(log, f"evaluation: culling the mesh ({len(rec.faces)} triangles) with {len(cams)} cameras (frustum"
+               f"{' + occlusion' if cfg.cull_occlusion else ''})")
     culled = cull_mesh(rec, cams, intr, every=1, eps=cfg.cull_eps, occlusion=cfg.cull_occlusion)
     gt_split_faces = None
     if cfg.cull_gt:  # GT triangles split first: visibility is per vertex, GT walls are often two triangles
+        stage(log, "evaluation: culling the ground-truth mesh the same way")
         gt = subdivide_to_edge(gt, GT_CULL_MAX_EDGE)
         gt_split_faces = int(len(gt.faces))
         gt = cull_mesh(gt, cams, intr, every=1, eps=cfg.cull_eps, occlusion=cfg.cull_occlusion)
@@ -366,6 +374,7 @@ def _mesh_eval(rec: trimesh.Trimesh, gt: trimesh.Trimesh, cams: np.ndarray, intr
     if len(culled.faces) == 0:
         return {"acc_m": None, "comp_m": None, "comp_ratio": None, "mesh_eval": details,
                 "error": "culled reconstruction is empty: no Acc/Comp"}
+    stage(log, f"evaluation: accuracy / completion on {cfg.n_samples} surface samples{' after ICP' if cfg.icp else ''}")
     m = mesh_metrics(culled, gt, n_samples=cfg.n_samples, threshold=cfg.threshold, icp=cfg.icp, seed=cfg.seed)
     details["icp_transform"] = m["icp_transform"]
     details["icp_info"] = m["icp_info"]

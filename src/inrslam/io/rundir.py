@@ -27,8 +27,8 @@ class RunDir:
     """A run directory at `root`.
 
     Files: config.yaml, run_info.json, log.jsonl, trajectory.txt, trajectory_gt.txt, trajectory_relative.txt,
-    keyframes.json, mesh.ply, metrics.json, checkpoints/latest.pt; sweep runs add bench.json and error.txt.
-    Folders: meshes/ (intermediate meshes), tensorboard/.
+    keyframes.json, trajectory.png, mesh.ply, mesh.png, metrics.json, checkpoints/latest.pt; sweep runs add
+    bench.json and error.txt. Folders: meshes/ (intermediate meshes), renders/ (held-out frames), tensorboard/.
     """
 
     FILES = {
@@ -41,6 +41,7 @@ class RunDir:
         "keyframes": "keyframes.json",
         "trajectory_plot": "trajectory.png",
         "mesh": "mesh.ply",
+        "mesh_thumbnail": "mesh.png",
         "metrics": "metrics.json",
         "checkpoint": "checkpoints/latest.pt",
     }
@@ -74,6 +75,7 @@ class RunDir:
     keyframes = property(lambda self: self.path("keyframes"))
     trajectory_plot = property(lambda self: self.path("trajectory_plot"))
     mesh = property(lambda self: self.path("mesh"))
+    mesh_thumbnail = property(lambda self: self.path("mesh_thumbnail"))
     metrics = property(lambda self: self.path("metrics"))
     checkpoint = property(lambda self: self.path("checkpoint"))
     bench = property(lambda self: self.path("bench"))

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 from inrslam.config.loader import dump_config, load_config
 from inrslam.errors import ConfigError, RunError
@@ -14,6 +16,10 @@ from inrslam.io.rundir import RunDir
 from inrslam.runner.writer import RunWriter
 from inrslam.slam.system import Progress, SlamSystem
 from inrslam.slam.systems import system_class
+from inrslam.status import logger, stage
+from inrslam.status import progress as report_progress
+
+log = logger(__name__)
 
 
 def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, overwrite: bool = False,
@@ -36,9 +42,11 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, 
         raise ConfigError(f"{out} already holds a run: continue it with --resume {out}, or pass --overwrite")
     if overwrite:
         rd.clear()
+    stage(log, f"opening the dataset {cfg.data.path}")
     dataset = open_dataset(cfg.data)
     threads = resolve_threads(cfg.threads or threads or 0)
     with thread_scope(threads):
+        stage(log, f"building the map: {cfg.field.encoding} x {cfg.render.name}, {len(dataset)} frames")
         system = system_class(cfg)(cfg, dataset)
         out.mkdir(parents=True, exist_ok=True)
         # the resolved config, with the thread count used: `--config` reproduces the run (docs/reliability.md)
@@ -56,10 +64,12 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
     if not rd.holds_run():
         raise ConfigError(f"{run_dir}: not a run directory (no config.yaml)")
     cfg = load_config(rd.config, preset=None, check_variants=False)  # checked when the run was made
+    stage(log, f"opening the dataset {cfg.data.path}")
     dataset = open_dataset(cfg.data)
     threads = _recorded_threads(run_dir) if not cfg.threads else None
     threads = threads or resolve_threads(cfg.threads)
     with thread_scope(threads):
+        stage(log, f"building the map and loading the checkpoint {rd.checkpoint}")
         system = system_class(cfg)(cfg, dataset)
         return _drive(system, RunWriter(system, rd, threads), resume=True, progress=progress)
 
@@ -68,12 +78,47 @@ def _drive(system: SlamSystem, writer: RunWriter, resume: bool, progress: Progre
     """Feed the loop every remaining frame, writing as it goes; then the final outputs and the evaluation."""
     writer.start(resume)
     for i in range(system.state.next_frame, system.n_frames):
-        writer.log(system.process(i))
+        if i == 0:
+            with _initialisation_status(system):
+                writer.log(system.process(i))
+        else:
+            writer.log(system.process(i))
         writer.after_frame(i)
         if progress:
             progress(i, system.n_frames, system.progress_info(i))
     metrics = writer.finish()
     return _evaluate(system, writer, metrics)
+
+
+INIT_UPDATES = 50  # progress records of the first frame's initialisation (at most)
+
+
+@contextmanager
+def _initialisation_status(system: SlamSystem) -> Iterator[None]:
+    """Status of frame 0, the map's initialisation (`slam.init_iters` optimiser steps): counted by a post-step hook
+    on one of the run's optimisers, removed afterwards. It only observes: the steps are the same with or without it."""
+    total = int(system.cfg.slam.init_iters)
+    stage(log, f"initialising the map on frame 0 ({total} iterations; the first ones also load the numba kernels)")
+    optimizers = list(getattr(system.state, "optimizers", {}).values())
+    if total <= 0 or not optimizers:
+        yield
+        return
+    every = -(-total // INIT_UPDATES)  # ceil: at most INIT_UPDATES records
+    done = 0
+
+    def counted(optimizer, args, kwargs) -> None:
+        nonlocal done
+        done += 1
+        if done % every == 0 or done == total:
+            report_progress(log, "init", min(done, total), total)
+
+    handle = optimizers[0].register_step_post_hook(counted)
+    try:
+        yield
+    finally:
+        handle.remove()
+    if done < total:  # iterations without a step (a non-finite loss, or a mapper with other optimisers) end here too
+        report_progress(log, "init", total, total)
 
 
 def _recorded_threads(run_dir: Path) -> int | None:
@@ -95,6 +140,7 @@ def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
         # frames between keyframes (offset by half the mapping period), rendered without jitter
         render = lambda c2w, intr: system.model.render_image(c2w, intr, n_coarse=ev.heldout_samples)
         sink = writer.write_render if system.cfg.output.renders else None
+        stage(log, "rendering the held-out frames (full frames, without their depth)")
         with writer.step("held-out renders"):
             metrics.update(heldout_metrics(render, system.dataset, system.est, ev.heldout_every, ev.heldout_max,
                                            offset=system.cfg.slam.map_every // 2, sink=sink))

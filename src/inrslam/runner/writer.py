@@ -21,6 +21,7 @@ from typing import Any, Iterator
 import numpy as np
 import torch
 import trimesh
+from trimesh.visual.color import ColorVisuals
 
 import inrslam
 from inrslam.datasets import absolute_path
@@ -31,6 +32,9 @@ from inrslam.io.trajectory import write_tum
 from inrslam.omp_env import wait_policy
 from inrslam.runner.checkpoint import IDENTITY, load_checkpoint, save_checkpoint
 from inrslam.slam.system import SlamSystem
+from inrslam.status import logger, stage
+
+log = logger(__name__)
 
 
 class RunWriter:
@@ -152,6 +156,19 @@ class RunWriter:
             with atomic_path(path) as tmp:
                 mesh.export(tmp)
 
+    def write_mesh_thumbnail(self, mesh: trimesh.Trimesh, poses: np.ndarray) -> None:
+        """mesh.png (atomic): `eval.mesh_thumbnail` of the final mesh, the up axis taken from the (N, 4, 4) c2w
+        `poses` (NaN rows ignored)."""
+        from PIL import Image
+
+        from inrslam.eval.mesh_thumbnail import mesh_thumbnail, up_direction
+
+        visual = mesh.visual
+        colors = visual.vertex_colors if isinstance(visual, ColorVisuals) and visual.kind == "vertex" else None
+        picture = mesh_thumbnail(mesh.vertices, mesh.faces, colors, up_direction(poses))
+        with atomic_path(self.rd.mesh_thumbnail) as tmp:
+            Image.fromarray(picture).save(tmp, format="PNG")
+
     def write_render(self, frame: int, picture: np.ndarray) -> None:
         """renders/frame_NNNNNN.png (atomic): a held-out frame's (H, 4W, 3) uint8 panel (eval.heldout.heldout_panel)."""
         from PIL import Image
@@ -205,8 +222,8 @@ class RunWriter:
 
     # -- end -------------------------------------------------------------------------------------------------------
     def finish(self) -> dict:
-        """Final checkpoint, trajectories (and trajectory.png), keyframes.json and mesh.ply; returns the process metrics (the caller
-        adds what it evaluates and writes metrics.json once)."""
+        """Final checkpoint, trajectories (and trajectory.png), keyframes.json, mesh.ply (and mesh.png); returns the
+        process metrics (the caller adds what it evaluates and writes metrics.json once)."""
         self.checkpoint()
         wall_s = self.wall_s()
         rd = self.rd
@@ -223,8 +240,15 @@ class RunWriter:
                     plot_trajectory(res.est, res.gt, rd.trajectory_plot)
         write_json(rd.keyframes, {"keyframes": res.keyframes})
         if self.cfg.mesh.enabled:
+            mesh = None
+            stage(log, f"extracting the mesh (marching cubes, {self.cfg.mesh.resolution * 100:g} cm grid)")
             with self.step("mesh extraction"):
-                self.write_mesh(self.system.mesh(), rd.mesh)
+                mesh = self.system.mesh()
+                self.write_mesh(mesh, rd.mesh)
+            if mesh is not None and self.cfg.output.renders:
+                stage(log, f"drawing mesh.png ({len(mesh.faces)} triangles)")
+                with self.step("mesh thumbnail"):
+                    self.write_mesh_thumbnail(mesh, res.est)
         if self.tb is not None:
             self.tb.close()
             self.tb = None

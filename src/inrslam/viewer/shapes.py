@@ -12,6 +12,10 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+# the up axis and the overview direction are defined once, with the run directory's mesh picture
+from inrslam.eval.mesh_thumbnail import up_direction as up_direction
+from inrslam.eval.mesh_thumbnail import view_direction
+
 RGB = tuple[int, int, int]
 
 GT_COLOR: RGB = (110, 110, 110)  # ground-truth trajectories: grey
@@ -72,17 +76,6 @@ def frustum_scale(poses: np.ndarray) -> float:
     return float(np.clip(0.04 * extent, 0.05, 0.3))
 
 
-def up_direction(poses: np.ndarray) -> np.ndarray:
-    """The world axis (+-x, +-y, +-z as a (3,) unit vector) closest to the cameras' mean up direction (-y of each
-    camera in OpenCV axes); +z without a valid pose. The viewer orbits around it."""
-    p = np.asarray(poses, dtype=np.float64)[valid_poses(np.asarray(poses))]
-    up = -p[:, :3, 1].mean(axis=0) if len(p) else np.array([0.0, 0.0, 1.0])
-    axis = int(np.argmax(np.abs(up)))
-    out = np.zeros(3)
-    out[axis] = 1.0 if up[axis] >= 0 or not np.isfinite(up[axis]) else -1.0
-    return out
-
-
 def overview_camera(points: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A viewpoint that sees all (K, 3) `points` (NaN rows ignored): (position, look_at) [m], looking at their
     bounding-box centre from 0.9 x its diagonal (at least 1 m) away, 60 degrees above the horizontal of `up`."""
@@ -92,10 +85,5 @@ def overview_camera(points: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.
         p = np.zeros((1, 3))
     lo, hi = p.min(axis=0), p.max(axis=0)
     center, diagonal = (lo + hi) / 2.0, max(float(np.linalg.norm(hi - lo)), 1.0)
-    up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    flat = np.ones(3) - np.abs(up)  # the two horizontal world axes of an axis-aligned `up`, summed
-    flat = flat - up * float(flat @ up)
-    flat = flat / np.linalg.norm(flat)
-    direction = math.cos(math.radians(60.0)) * flat + math.sin(math.radians(60.0)) * up
-    return center + 0.9 * diagonal * direction, center
+    return center + 0.9 * diagonal * view_direction(up, 60.0), center
 
