@@ -182,3 +182,24 @@ def test_a_photometric_refinement_moving_a_gicp_pose_too_far_is_rejected(tmp_pat
     for r in tracks(out):
         assert r["fallback"] == "photo_jump" and r["photo_shift_mm"] > 0  # logged, GICP's pose kept
         assert r["photo_target"] == r["frame"] - 1  # a failed refinement renews the photometric keyframe
+
+
+def test_map_learns_filtered_depth_only_when_asked_and_only_on_noisy_depth():
+    from inrslam.datasets import open_dataset
+    from inrslam.slam.registration import filtered_depth
+    from inrslam.slam.system import SlamSystem
+
+    for scene, noisy_depth in (("handheld", True), ("room", False)):
+        for on in (True, False):
+            cfg = load_config(preset="accurate", overrides=SMALL + [f"data.path=builtin:{scene}", "data.max_frames=2",
+                                                                    f"slam.map_filtered_depth={str(on).lower()}"])
+            system = SlamSystem(cfg, open_dataset(cfg.data))
+            frame = system.dataset[1]
+            mapped = system._map_frame(frame)
+            if on and noisy_depth:
+                want = filtered_depth(frame.depth, cfg.slam.gicp)
+                np.testing.assert_allclose(mapped.depth, want, rtol=1e-6, atol=0)
+                assert not np.array_equal(mapped.depth, frame.depth)
+                assert ((mapped.depth > 0) == (frame.depth > 0)).all()  # holes stay holes
+            else:
+                assert mapped is frame

@@ -82,6 +82,23 @@ class DatasetView:
         for i in range(len(self)):
             yield self[i]
 
+    def true_depth(self, i: int) -> Optional[np.ndarray]:
+        """(H, W) noise-free depth of selected frame i, metres (cropped and clamped like the frame's), when the
+        base dataset has it (`true_depth`: the built-in scenes, before their sensor effects), else None."""
+        fn = getattr(self.base, "true_depth", None)
+        if fn is None:
+            return None
+        n = len(self.indices)
+        if not -n <= i < n:
+            raise IndexError(f"frame {i} out of range for {n} frames")
+        depth = fn(self.indices[i])
+        if self.crop_edge:
+            e = self.crop_edge
+            depth = depth[e:-e, e:-e]
+        if self.depth_max > 0:
+            depth = np.where(depth > self.depth_max, np.float32(0), depth)
+        return np.ascontiguousarray(depth, dtype=np.float32)
+
     def _per_frame(self, attr: str) -> Any:
         values = getattr(self.base, attr, None)
         if callable(values):

@@ -15,6 +15,13 @@ class Alignment(str, enum.Enum):
     NONE = "none"  # no alignment (both trajectories already share a frame)
 
 
+class HeldoutDepth(str, enum.Enum):
+    """Which depth of a held-out render is compared with the observed depth (`SlamModel.render_image`)."""
+
+    EXPECTED = "expected"  # G's weighted mean depth sum_i w_i z_i (the benchmark's)
+    SURFACE = "surface"  # the first + to - SDF crossing along the ray (the expected depth where there is none)
+
+
 @dataclass
 class EvalConfig:
     """Protocol of `inrslam.eval.run.evaluate_run` (defaults = the benchmark's protocol, docs/spec.md §8, ICP off)."""
@@ -36,6 +43,7 @@ class EvalConfig:
     heldout_every: int = 10  # held-out full-frame renders of every N-th frame (PSNR/SSIM/depth L1; 0 = off)
     heldout_max: int = 20  # at most this many held-out renders
     heldout_samples: int = 96  # uniform samples per ray used to find the surface in held-out renders
+    heldout_depth: HeldoutDepth = HeldoutDepth.EXPECTED  # held-out depth: expected (weighted mean) | surface (SDF zero)
 
     @classmethod
     def from_any(cls, obj: Any = None) -> "EvalConfig":
@@ -53,6 +61,8 @@ class EvalConfig:
                 kw[f.name] = v
         if "align" in kw:
             kw["align"] = Alignment(getattr(kw["align"], "value", kw["align"]))
+        if "heldout_depth" in kw:
+            kw["heldout_depth"] = HeldoutDepth(getattr(kw["heldout_depth"], "value", kw["heldout_depth"]))
         return cls(**kw)
 
     def protocol(self) -> dict:

@@ -43,23 +43,37 @@ def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: in
         poses: (N, 4, 4) estimated c2w used for rendering (the estimate, not the ground truth).
         sink: called with (frame index, `heldout_panel` picture) for every rendered frame (to save it).
     Returns:
-        dict(psnr_db, ssim, depth_l1_m, heldout_frames).
+        dict(psnr_db, ssim, depth_l1_m, heldout_frames), and depth_l1_true_m (against the noise-free depth,
+        `true_depth_of`) when the dataset knows it (the built-in scenes).
     """
     idx = list(range(min(offset, len(dataset) - 1), len(dataset), every))[:max_frames]
-    ps, ss, dl = [], [], []
+    ps, ss, dl, dt = [], [], [], []
     for k, i in enumerate(idx):
         frame = dataset[i]
         rgb, depth = render(poses[i], frame.intrinsics)
-        rgb = np.clip(_np(rgb), 0.0, 1.0)
+        rgb, depth = np.clip(_np(rgb), 0.0, 1.0), _np(depth)
         ps.append(float(psnr(rgb, frame.rgb)))
         ss.append(float(ssim(rgb, frame.rgb)))
         if (frame.depth > 0).any():
-            dl.append(float(depth_l1(_np(depth), frame.depth)))
+            dl.append(float(depth_l1(depth, frame.depth)))
+        true = true_depth_of(dataset, i)
+        if true is not None and (true > 0).any():
+            dt.append(float(depth_l1(depth, true)))
         if sink is not None:
-            sink(i, heldout_panel(frame.rgb, rgb, _np(depth), frame.depth))
+            sink(i, heldout_panel(frame.rgb, rgb, depth, frame.depth))
         progress(log, "renders", k + 1, len(idx))
-    return {"psnr_db": float(np.mean(ps)) if ps else None, "ssim": float(np.mean(ss)) if ss else None,
-            "depth_l1_m": float(np.mean(dl)) if dl else None, "heldout_frames": idx}
+    out = {"psnr_db": float(np.mean(ps)) if ps else None, "ssim": float(np.mean(ss)) if ss else None,
+           "depth_l1_m": float(np.mean(dl)) if dl else None, "heldout_frames": idx}
+    if dt and len(dt) == len(idx):
+        out["depth_l1_true_m"] = float(np.mean(dt))
+    return out
+
+
+def true_depth_of(dataset, i: int) -> np.ndarray | None:
+    """(H, W) noise-free depth of frame i in metres (0 = none) when the dataset knows it (`true_depth(i)`: the
+    built-in scenes, before their sensor noise and holes), else None."""
+    fn = getattr(dataset, "true_depth", None)
+    return None if fn is None else fn(i)
 
 
 def _np(x):

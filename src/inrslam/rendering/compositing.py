@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 
@@ -24,3 +25,24 @@ def composite(weights: Tensor, rgb: Tensor, z: Tensor) -> tuple[Tensor, Tensor, 
     opacity = weights.sum(dim=-1)
     depth_var = (weights * (z - depth[..., None]) ** 2).sum(dim=-1)
     return out_rgb, depth, opacity, depth_var
+
+
+def first_crossing(sdf: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
+    """z-depth of the first + to - sign change of the SDF along each ray, linearly interpolated between its two
+    samples: the surface the ray meets first (the depth an SDF defines, free of the bias of a weighted mean).
+
+    Args:
+        sdf: (R, S) SDF at the samples (any unit); z: (R, S) sorted sample z-depths, metres.
+    Returns:
+        depth (R,) metres (0 where the ray has no crossing) and has (R,) bool.
+
+    Example: sdf = [[1, 0.5, -0.5]], z = [[1, 2, 3]] -> depth 2.5, has True.
+    """
+    cross = (sdf[:, :-1] > 0) & (sdf[:, 1:] <= 0)
+    has = cross.any(dim=1)
+    k = torch.argmax(cross.to(torch.int8), dim=1)
+    r = torch.arange(z.shape[0], device=z.device)
+    s0, s1 = sdf[r, k], sdf[r, k + 1]
+    t = s0 / (s0 - s1).clamp_min(1e-8)
+    zc = z[r, k] + t * (z[r, k + 1] - z[r, k])
+    return torch.where(has, zc, torch.zeros_like(zc)), has

@@ -131,6 +131,7 @@ def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
     """Held-out renders with the final map and estimated poses, the process metrics written with them, then every
     result metric (docs/metrics.md). A step that fails does not stop the others: what can be written is, the
     failure goes to log.jsonl with its traceback, and the run ends with one RunError naming every failed step."""
+    from inrslam.eval.config import HeldoutDepth
     from inrslam.eval.heldout import heldout_metrics
     from inrslam.eval.run import evaluate_run
 
@@ -138,7 +139,8 @@ def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
     rd = writer.rd
     if ev.enabled and ev.heldout_every:
         # frames between keyframes (offset by half the mapping period), rendered without jitter
-        render = lambda c2w, intr: system.model.render_image(c2w, intr, n_coarse=ev.heldout_samples)
+        depth = HeldoutDepth(ev.heldout_depth).value  # expected (weighted mean) or surface (SDF zero crossing)
+        render = lambda c2w, intr: system.model.render_image(c2w, intr, n_coarse=ev.heldout_samples, depth=depth)
         sink = writer.write_render if system.cfg.output.renders else None
         stage(log, "rendering the held-out frames (full frames, without their depth)")
         with writer.step("held-out renders"):

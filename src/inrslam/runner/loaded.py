@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from inrslam.errors import RunError
+from inrslam.eval.config import HeldoutDepth
 from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import read_tum
 
@@ -76,7 +77,8 @@ class LoadedRun:
                           height=int(d["height"]))
 
     def render(self, c2w: np.ndarray, intrinsics=None, samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Render the map from camera pose `c2w` (4, 4) without measured depth, as the held-out evaluation does.
+        """Render the map from camera pose `c2w` (4, 4) without measured depth, as the held-out evaluation does
+        (its depth as `eval.heldout_depth` says).
 
         Args: intrinsics: camera (default: the run's); samples: surface-search samples per ray (default: the
             run's `eval.heldout_samples`).
@@ -88,7 +90,8 @@ class LoadedRun:
         n = int(samples or self.config.eval.heldout_samples)
         with torch.no_grad():
             rgb, depth = self.model.render_image(torch.as_tensor(c2w, dtype=torch.float32),
-                                                 intrinsics or self.intrinsics, n_coarse=n)
+                                                 intrinsics or self.intrinsics, n_coarse=n,
+                                                 depth=HeldoutDepth(self.config.eval.heldout_depth).value)
         return rgb.numpy(), depth.numpy()
 
 

@@ -76,6 +76,10 @@ class BuiltinDataset:
             return d
         return apply_sensor(d, self.seed, i, self.depth_noise, self.missing_depth)
 
+    def true_depth(self, i: int) -> np.ndarray:
+        """(H, W) float32 noise-free z-depth of frame i, metres: the rendered depth before sensor noise and holes."""
+        return self.depth(i, clean=True)
+
     def __getitem__(self, i: int) -> Frame:
         i = self._index(int(i))
         return Frame(

@@ -163,6 +163,8 @@ class SlamConfig:
     map_pixels: int = 2048  # rays per mapping iteration drawn from the keyframe store
     map_current_min: int = 100  # min current-frame rays per mapping iteration (max(map_pixels/#KF, this))
     map_lr: float = 0.01  # Adam learning rate of the scene parameters
+    map_filtered_depth: bool = False  # the map learns the depth after slam.gicp's filter (noisy depth only; needs
+    # slam.gicp.depth_filter > 0): tracking still registers the raw depth
     bundle_adjust: bool = True  # optimise keyframe poses (first keyframe fixed) during mapping
     ba_lr: float = 1e-3  # Adam learning rate of keyframe poses
     ba_pose_every: int = 5  # pose step every N mapping iterations (gradients accumulate in between)
@@ -193,5 +195,5 @@ class OutputConfig:
 
     tensorboard: bool = True  # TensorBoard scalars when tensorboard is installed
     keep_checkpoint: bool = True  # keep checkpoints/ of a finished run (false: delete it once the run is complete)
-    renders: bool = True  # renders/ (each held-out frame: observed, rendered, depth, error) and trajectory.png
+    renders: bool = True  # renders/ (held-out frames: observed, rendered, depth, error), trajectory.png, mesh.png
 

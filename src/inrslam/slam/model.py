@@ -21,6 +21,7 @@ from inrslam.rendering import (
     SdfToWeights,
     build_renderer,
     compute_losses,
+    first_crossing,
     render_rays,
     renderer_param_groups,
     sample_depths,
@@ -99,15 +100,19 @@ class SceneModel(nn.Module):
     # -- held-out rendering (no measured depth) -----------------------------------------------------------
     @torch.no_grad()
     def render_image(self, c2w: Tensor, intr: Intrinsics, n_coarse: int = 96,
-                     chunk: int = 4096) -> tuple[Tensor, Tensor]:
+                     chunk: int = 4096, depth: str = "expected") -> tuple[Tensor, Tensor]:
         """Render a full frame *without* the measured depth: coarse uniform samples to the box exit, the first
         + to - SDF crossing then serves as the depth guiding the standard free-space + surface sampling.
 
         Args:
             c2w: (4, 4) camera-to-world, metres; intr: the camera (H = intr.height, W = intr.width).
             n_coarse: uniform samples per ray of the surface search; chunk: rays per field batch.
+            depth: "expected" = G's weighted mean depth sum_i w_i z_i; "surface" = the first + to - SDF crossing
+                among the final samples (`first_crossing`), the weighted mean where a ray has none.
         Returns: rgb (H, W, 3) in [0, 1], depth (H, W) in metres.
         """
+        if depth not in ("expected", "surface"):
+            raise ValueError(f"render_image: depth must be 'expected' or 'surface', got {depth!r}")
         dev = self.bounds.device
         H, W = intr.height, intr.width
         v, u = torch.meshgrid(torch.arange(H, device=dev), torch.arange(W, device=dev), indexing="ij")
@@ -122,7 +127,11 @@ class SceneModel(nn.Module):
             z = sample_depths(guess, dirs, origins, self.bounds, no_jitter, self.truncation, None)
             out = render_rays(self.field, self.renderer, origins, dirs, z, self.truncation)
             rgb_out.append(out.rgb)
-            depth_out.append(out.depth)
+            if depth == "surface":
+                zc, has = first_crossing(out.sdf, out.z)
+                depth_out.append(torch.where(has, zc, out.depth))
+            else:
+                depth_out.append(out.depth)
         return torch.cat(rgb_out).reshape(H, W, 3), torch.cat(depth_out).reshape(H, W)
 
     @torch.no_grad()
@@ -133,14 +142,7 @@ class SceneModel(nn.Module):
         z = sample_depths(zero, dirs, origins, self.bounds, sampling, self.truncation, None)
         pts = origins[:, None, :] + z[..., None] * dirs[:, None, :]
         sdf = self.field.sdf(pts.reshape(-1, 3)).reshape(z.shape)
-        cross = (sdf[:, :-1] > 0) & (sdf[:, 1:] <= 0)
-        has = cross.any(dim=1)
-        k = torch.argmax(cross.to(torch.int8), dim=1)
-        r = torch.arange(z.shape[0], device=z.device)
-        s0, s1 = sdf[r, k], sdf[r, k + 1]
-        t = s0 / (s0 - s1).clamp_min(1e-8)
-        zc = z[r, k] + t * (z[r, k + 1] - z[r, k])
-        return torch.where(has, zc, zero)
+        return first_crossing(sdf, z)[0]
 
 
 def _uniform_only(sampling_cfg: SamplingConfig, n: int) -> SamplingConfig:

@@ -186,7 +186,7 @@ class SlamSystem:
 
     def _process(self, i: int, frame: Frame) -> None:
         cfg = self.cfg.slam
-        ft = FrameTensors(frame, self.device)
+        ft = FrameTensors(self._map_frame(frame), self.device)
         self.state.timestamps[i] = frame.timestamp
         self.model.renderer.set_progress(i / max(self.n_frames - 1, 1))  # NeuS cosine annealing, if enabled
         if frame.pose_valid and np.all(np.isfinite(frame.c2w)):
@@ -253,6 +253,17 @@ class SlamSystem:
         self._log(rec)
         if i % cfg.map_every == 0:
             self._map(i, ft)
+
+    def _map_frame(self, frame: Frame) -> Frame:
+        """The frame the map learns from: `frame`, or with its depth after slam.gicp's filter when
+        `slam.map_filtered_depth` is set (which filters noisy depth only: `filtered_depth`)."""
+        g = self.cfg.slam.gicp
+        if not self.cfg.slam.map_filtered_depth or g.depth_filter <= 0:
+            return frame
+        depth = filtered_depth(frame.depth, g)
+        if depth is frame.depth:
+            return frame
+        return dataclasses.replace(frame, depth=depth.astype(np.float32))
 
     def _set_pose(self, i: int, c2w: torch.Tensor) -> None:
         """Frame i's pose, and the same pose relative to the last keyframe (docs/spec.md §7.6)."""
