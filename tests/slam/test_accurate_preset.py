@@ -203,3 +203,13 @@ def test_map_learns_filtered_depth_only_when_asked_and_only_on_noisy_depth():
                 assert ((mapped.depth > 0) == (frame.depth > 0)).all()  # holes stay holes
             else:
                 assert mapped is frame
+
+
+def test_photometric_keyframe_is_renewed_when_its_residual_grows(noisy, tmp_path_factory):
+    # default (kf_rms_factor 0): 5 frames of `handheld` stay on the first photometric keyframe (< 30 cm, < 25 deg)
+    assert [r["photo_target"] for r in tracks(noisy)] == [0, 0, 0, 0]
+    # a factor below 1: every refinement's RMS exceeds it times the first one onto the reference -> renewed each frame
+    out = run(tmp_path_factory, "photo_rms", "accurate", NOISY + ["slam.photo.kf_rms_factor=0.5"])
+    recs = tracks(out)
+    assert [r["photo_target"] for r in recs] == [r["frame"] - 1 for r in recs]
+    assert all("fallback" not in r for r in recs)

@@ -7,6 +7,7 @@ its registry is picked up here automatically.
 
 from __future__ import annotations
 
+import types
 import typing
 
 import numpy as np
@@ -77,3 +78,39 @@ def test_run_config_has_every_section_the_scene_model_reads():
     """`ModelConfig` (slam may not import the config layer) names RunConfig's sections with their types."""
     wanted, run = typing.get_type_hints(ModelConfig), typing.get_type_hints(RunConfig)
     assert wanted and all(run.get(name) is typ for name, typ in wanted.items()), (wanted, run)
+
+
+class _Plane(torch.nn.Module):
+    """Analytic field: the plane z = 0.8 m facing the camera, SDF in truncation units, constant colour."""
+
+    def __init__(self, truncation: float):
+        super().__init__()
+        self.t = truncation
+        self.dummy = torch.nn.Parameter(torch.zeros(1))
+
+    def sdf(self, x):
+        return (0.8 - x[:, 2]) / self.t
+
+    def forward(self, x):
+        return types.SimpleNamespace(sdf=self.sdf(x), rgb_logits=torch.zeros(x.shape[0], 3))
+
+
+@pytest.mark.parametrize("render", ["direct", "nerf"])
+def test_held_out_surface_depth_is_the_zero_crossing_and_nerf_keeps_the_weighted_mean(render):
+    from inrslam.geometry.intrinsics import Intrinsics
+
+    cfg = load_config(preset="quick", overrides=["field.encoding=dense", f"render.name={render}", *TINY])
+    model = SceneModel(cfg, BOUNDS)
+    model.field = _Plane(model.truncation)
+    intr = Intrinsics(fx=8.0, fy=8.0, cx=3.5, cy=2.5, width=8, height=6)
+    c2w = torch.eye(4)
+    rgb_e, expected = model.render_image(c2w, intr, n_coarse=64, depth="expected")
+    rgb_s, surface = model.render_image(c2w, intr, n_coarse=64, depth="surface")
+    assert torch.equal(rgb_e, rgb_s)  # colour does not depend on the depth estimator
+    if render == "nerf":  # no SDF to cross: the weighted mean
+        assert torch.equal(surface, expected)
+    else:  # a linear SDF: the interpolated zero crossing is the plane, exactly
+        torch.testing.assert_close(surface, torch.full_like(surface, 0.8), atol=1e-5, rtol=0)
+        assert not torch.equal(surface, expected)
+    with pytest.raises(ValueError, match="depth must be"):
+        model.render_image(c2w, intr, depth="median")

@@ -19,7 +19,7 @@ class HeldoutDepth(str, enum.Enum):
     """Which depth of a held-out render is compared with the observed depth (`SlamModel.render_image`)."""
 
     EXPECTED = "expected"  # G's weighted mean depth sum_i w_i z_i (the benchmark's)
-    SURFACE = "surface"  # the first + to - SDF crossing along the ray (the expected depth where there is none)
+    SURFACE = "surface"  # the first + to - SDF crossing along the ray (expected where there is none, and for nerf)
 
 
 @dataclass

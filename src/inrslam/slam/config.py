@@ -93,7 +93,8 @@ class PhotoConfig:
     weak_degeneracy: float = 0.05  # ... where GICP's degeneracy is below this (a near-degenerate view) or GICP
     weak_max_step: float = 0.05  # failed its checks, the bound is this, metres
     kf_dist: float = 0.3  # a new photometric keyframe after this much motion from it, metres ...
-    kf_angle: float = 25.0  # ... or this much rotation, degrees
+    kf_angle: float = 25.0  # ... or this much rotation, degrees, ...
+    kf_rms_factor: float = 0.0  # ... or once the residual RMS exceeds this x the first one onto it (0 = off)
 
 
 @dataclass

@@ -108,11 +108,13 @@ class SceneModel(nn.Module):
             c2w: (4, 4) camera-to-world, metres; intr: the camera (H = intr.height, W = intr.width).
             n_coarse: uniform samples per ray of the surface search; chunk: rays per field batch.
             depth: "expected" = G's weighted mean depth sum_i w_i z_i; "surface" = the first + to - SDF crossing
-                among the final samples (`first_crossing`), the weighted mean where a ray has none.
+                among the final samples (`first_crossing`), the weighted mean where a ray has none (and for a
+                G that is not SDF-based: nerf).
         Returns: rgb (H, W, 3) in [0, 1], depth (H, W) in metres.
         """
         if depth not in ("expected", "surface"):
             raise ValueError(f"render_image: depth must be 'expected' or 'surface', got {depth!r}")
+        surface = depth == "surface" and getattr(self.renderer, "sdf_based", True)  # nerf: no SDF to cross
         dev = self.bounds.device
         H, W = intr.height, intr.width
         v, u = torch.meshgrid(torch.arange(H, device=dev), torch.arange(W, device=dev), indexing="ij")
@@ -127,7 +129,7 @@ class SceneModel(nn.Module):
             z = sample_depths(guess, dirs, origins, self.bounds, no_jitter, self.truncation, None)
             out = render_rays(self.field, self.renderer, origins, dirs, z, self.truncation)
             rgb_out.append(out.rgb)
-            if depth == "surface":
+            if surface:
                 zc, has = first_crossing(out.sdf, out.z)
                 depth_out.append(torch.where(has, zc, out.depth))
             else:

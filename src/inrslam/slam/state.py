@@ -17,8 +17,8 @@ from torch import Tensor
 from inrslam.slam.keyframes import KeyframeStore
 
 # fields a checkpoint from an older version may lack, with how to fill them in
-_OPTIONAL = {"rel", "rel_kf", "gicp_kfs", "photo_kfs", "photo_shifts", "track_losses", "lost_run", "loops",
-             "loop_stats"}
+_OPTIONAL = {"rel", "rel_kf", "gicp_kfs", "photo_kfs", "photo_shifts", "photo_kf_rms", "track_losses", "lost_run",
+             "loops", "loop_stats"}
 
 
 @dataclass(eq=False)
@@ -39,6 +39,8 @@ class SlamState:
         gicp_kfs: GICP keyframes (slam.gicp.target keyframe / local_map); the last is the current target.
         photo_kfs: photometric keyframes (slam.photo); the last is the current reference.
         photo_shifts: how far the last accepted photometric refinements moved their poses, metres (slam.photo.jump_*).
+        photo_kf_rms: residual RMS of the first refinement onto the current photometric keyframe (0 = none yet;
+            slam.photo.kf_rms_factor).
         track_losses: recent rendered-tracking losses of frames not lost (slam.lost.window; init's final first);
         lost_run: consecutive lost frames up to now.
         loops: accepted loop closures, `{"candidate": frame, "frame": frame, "T": (4, 4) list}` (slam.loop_closure);
@@ -64,6 +66,7 @@ class SlamState:
     gicp_kfs: list[int] = field(default_factory=lambda: [0])
     photo_kfs: list[int] = field(default_factory=lambda: [0])
     photo_shifts: list[float] = field(default_factory=list)
+    photo_kf_rms: float = 0.0
     track_losses: list[float] = field(default_factory=list)
     lost_run: int = 0
     loops: list[dict] = field(default_factory=list)

@@ -243,7 +243,7 @@ class SlamSystem:
         self.state.track_ms.append(track_ms)
         self._set_pose(i, c2w)
         if cur_pyr is not None:
-            self._renew_photo_keyframe(i, cur_pyr, "photo_fallback" in extra)
+            self._renew_photo_keyframe(i, cur_pyr, "photo_fallback" in extra, extra.get("photo_rms"))
         fallback = _joined(extra.pop("init_fallback", None), extra.pop("photo_fallback", None),
                            extra.pop("sdf_fallback", None), fallback)
         rec = {"type": "track", "frame": i, "loss": loss, "track_ms": track_ms, "iters": iters, **extra}
@@ -399,14 +399,21 @@ class SlamSystem:
             rec["photo_rescued"] = True
         return c2w.to(dtype=pred.dtype, device=pred.device), cur
 
-    def _renew_photo_keyframe(self, i: int, pyramid: list[PhotoLevel], failed: bool) -> None:
+    def _renew_photo_keyframe(self, i: int, pyramid: list[PhotoLevel], failed: bool, rms: float | None) -> None:
         """Frame i becomes the photometric reference once it has moved `kf_dist` / turned `kf_angle` from the
-        current one, or when the alignment onto it failed."""
+        current one, its residual RMS `rms` exceeds `kf_rms_factor` x the first one onto the current reference (the
+        reference no longer explains the view), or when the alignment onto it failed."""
         pc = self.cfg.slam.photo
-        k = self.state.photo_kfs[-1]
+        s = self.state
+        k = s.photo_kfs[-1]
+        if not failed and rms is not None and rms > 0 and s.photo_kf_rms <= 0:
+            s.photo_kf_rms = float(rms)  # the first refinement onto this reference sets its level
+        grown = pc.kf_rms_factor > 0 and not failed and rms is not None and s.photo_kf_rms > 0 \
+            and rms > pc.kf_rms_factor * s.photo_kf_rms
         from_kf = (torch.linalg.inv(self.est[k].double()) @ self.est[i].double()).cpu().numpy()
-        if failed or moved_beyond(from_kf, pc.kf_dist, pc.kf_angle):
-            self.state.photo_kfs.append(i)
+        if failed or grown or moved_beyond(from_kf, pc.kf_dist, pc.kf_angle):
+            s.photo_kfs.append(i)
+            s.photo_kf_rms = 0.0
             self._photo_ref = (i, pyramid)
 
     def _local_map(self, g: GicpConfig) -> PreparedCloud:
