@@ -177,6 +177,27 @@ class RunWriter:
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp:
             Image.fromarray(picture).save(tmp, format="PNG")
+        self._tensorboard_image(f"heldout/frame_{frame:06d}", picture)
+
+    def _tensorboard_image(self, tag: str, picture: np.ndarray) -> None:
+        """Also log an (H, W, 3) uint8 picture to TensorBoard (output.tensorboard), at the run's last frame as step:
+        the scalars' writer is closed by then (`finish`), so one for the pictures is opened once, then flushed."""
+        if not self.cfg.output.tensorboard:
+            return
+        if self.tb is None:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+            except Exception:  # not installed: `_open_tensorboard` has warned already
+                return
+            self.tb = SummaryWriter(str(self.rd.tensorboard))
+        self.tb.add_image(tag, picture, global_step=self.system.n_frames - 1, dataformats="HWC")
+        self.tb.flush()
+
+    def close_tensorboard(self) -> None:
+        """Close the TensorBoard writer if one is open (after the held-out pictures)."""
+        if self.tb is not None:
+            self.tb.close()
+            self.tb = None
 
     def write_run_info(self, status: str) -> None:
         """run_info.json: status, dataset (absolute paths), intrinsics, bounds, keyframes, versions, device, threads and
