@@ -38,13 +38,15 @@ def test_handler_raises_outside_and_retries_inside_the_compiler():
 
 
 def test_the_block_restores_the_default_and_leaves_an_ignored_sigint_alone():
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    with defer_sigint_in_jit() as installed:
-        assert installed and signal.getsignal(signal.SIGINT) is _handler
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    inherited = signal.getsignal(signal.SIGINT)  # SIG_IGN when the test process was started with nohup / `&`
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with defer_sigint_in_jit() as installed:
+            assert installed and signal.getsignal(signal.SIGINT) is _handler
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        with defer_sigint_in_jit() as installed:
             assert not installed and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGINT, inherited)

@@ -146,7 +146,7 @@ def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
         with writer.step("held-out renders"):
             metrics.update(heldout_metrics(render, system.dataset, system.est, ev.heldout_every, ev.heldout_max,
                                            offset=system.cfg.slam.map_every // 2, sink=sink))
-        writer.close_tensorboard()  # the held-out pictures went to TensorBoard too
+    writer.close_tensorboard()  # open until here: the held-out pictures go to TensorBoard too
     rd.write_metrics(metrics)
     writer.write_run_info("slam_done")
     if ev.enabled:

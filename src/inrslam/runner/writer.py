@@ -180,21 +180,14 @@ class RunWriter:
         self._tensorboard_image(f"heldout/frame_{frame:06d}", picture)
 
     def _tensorboard_image(self, tag: str, picture: np.ndarray) -> None:
-        """Also log an (H, W, 3) uint8 picture to TensorBoard (output.tensorboard), at the run's last frame as step:
-        the scalars' writer is closed by then (`finish`), so one for the pictures is opened once, then flushed."""
-        if not self.cfg.output.tensorboard:
-            return
-        if self.tb is None:
-            try:
-                from torch.utils.tensorboard import SummaryWriter
-            except Exception:  # not installed: `_open_tensorboard` has warned already
-                return
-            self.tb = SummaryWriter(str(self.rd.tensorboard))
-        self.tb.add_image(tag, picture, global_step=self.system.n_frames - 1, dataformats="HWC")
-        self.tb.flush()
+        """Also log an (H, W, 3) uint8 picture to TensorBoard (when its writer is open: output.tensorboard and
+        tensorboard installed), at the run's last frame as step, in the same event file as the run's scalars."""
+        if self.tb is not None:
+            self.tb.add_image(tag, picture, global_step=self.system.n_frames - 1, dataformats="HWC")
+            self.tb.flush()
 
     def close_tensorboard(self) -> None:
-        """Close the TensorBoard writer if one is open (after the held-out pictures)."""
+        """Close the TensorBoard writer if one is open (after the held-out pictures: `finish` leaves it open)."""
         if self.tb is not None:
             self.tb.close()
             self.tb = None
@@ -270,9 +263,6 @@ class RunWriter:
                 stage(log, f"drawing mesh.png ({len(mesh.faces)} triangles)")
                 with self.step("mesh thumbnail"):
                     self.write_mesh_thumbnail(mesh, res.est)
-        if self.tb is not None:
-            self.tb.close()
-            self.tb = None
         process = {"wall_time_s": wall_s, "peak_memory_mb": self.peak_memory_mb()}
         # metrics after the mesh: an empty mesh is an event they count; dict order: METRIC_ORDER first
         return {**dict.fromkeys(METRIC_ORDER), **self.system.process_metrics(), **process}

@@ -10,6 +10,7 @@ from torch import Tensor, nn
 from inrslam.fields import make_optimizer
 from inrslam.geometry.camera import pixel_directions, world_rays
 from inrslam.geometry.intrinsics import Intrinsics
+from inrslam.rendering import first_crossing
 from inrslam.slam.ehe.config import EheConfig
 from inrslam.slam.ehe.field import EheField
 from inrslam.slam.ehe.losses import ehe_losses
@@ -52,17 +53,25 @@ class EheModel(nn.Module):
 
     @torch.no_grad()
     def render_image(self, c2w: Tensor, intr: Intrinsics, n_coarse: int = 0,
-                     chunk: int = 8192) -> tuple[Tensor, Tensor]:
+                     chunk: int = 8192, depth: str = "expected") -> tuple[Tensor, Tensor]:
         """Full frame without measured depth (samples inside hit voxels need none; `n_coarse` is unused).
+        `depth`: "expected" (weighted mean) or "surface" (first + to - SDF crossing of the samples, `first_crossing`;
+        the weighted mean where there is none), as `SceneModel.render_image`.
         Returns rgb (H, W, 3) in [0, 1] and depth (H, W) metres (0 where a ray hits no voxel)."""
+        if depth not in ("expected", "surface"):
+            raise ValueError(f"render_image: depth must be 'expected' or 'surface', got {depth!r}")
         dev = self.bounds.device
         H, W = intr.height, intr.width
         v, u = torch.meshgrid(torch.arange(H, device=dev), torch.arange(W, device=dev), indexing="ij")
         dirs_cam = pixel_directions(intr, u.reshape(-1).float(), v.reshape(-1).float())
-        rgb, depth = [], []
+        rgbs, depths = [], []
         for s in range(0, dirs_cam.shape[0], chunk):
             o, d = world_rays(c2w, dirs_cam[s:s + chunk])
             out = self.render(o, d, None)
-            rgb.append(out.rgb)
-            depth.append(out.depth)
-        return torch.cat(rgb).reshape(H, W, 3), torch.cat(depth).reshape(H, W)
+            rgbs.append(out.rgb)
+            if depth == "surface":  # padding repeats the last valid SDF: no crossing there
+                zc, has = first_crossing(out.sdf, out.z)
+                depths.append(torch.where(has, zc, out.depth))
+            else:
+                depths.append(out.depth)
+        return torch.cat(rgbs).reshape(H, W, 3), torch.cat(depths).reshape(H, W)
