@@ -195,7 +195,7 @@ def test_map_learns_filtered_depth_only_when_asked_and_only_on_noisy_depth():
                                                                     f"slam.map_filtered_depth={str(on).lower()}"])
             system = SlamSystem(cfg, open_dataset(cfg.data))
             frame = system.dataset[1]
-            mapped = system._map_frame(frame)
+            mapped = system._map_frame(frame, filtered_depth(frame.depth, cfg.slam.gicp))  # as _process gives it
             if on and noisy_depth:
                 want = filtered_depth(frame.depth, cfg.slam.gicp)
                 np.testing.assert_allclose(mapped.depth, want, rtol=1e-6, atol=0)

@@ -186,7 +186,11 @@ class SlamSystem:
 
     def _process(self, i: int, frame: Frame) -> None:
         cfg = self.cfg.slam
-        ft = FrameTensors(self._map_frame(frame), self.device)
+        noise = depth_noise(frame.depth, cfg.gicp) if cfg.gicp.depth_filter > 0 or cfg.photo.enabled else None
+        # the frame's depth after slam.gicp's filter (noisy depth only), once: the map and the photometric pyramid
+        smooth = (filtered_depth(frame.depth, cfg.gicp, noise=noise)
+                  if noise is not None and (cfg.map_filtered_depth or cfg.photo.enabled) else frame.depth)
+        ft = FrameTensors(self._map_frame(frame, smooth), self.device)
         self.state.timestamps[i] = frame.timestamp
         self.model.renderer.set_progress(i / max(self.n_frames - 1, 1))  # NeuS cosine annealing, if enabled
         if frame.pose_valid and np.all(np.isfinite(frame.c2w)):
@@ -215,14 +219,13 @@ class SlamSystem:
         t0 = time.perf_counter()
         extra: dict = {}
         fallback: str | None
-        noise = depth_noise(frame.depth, cfg.gicp) if cfg.gicp.depth_filter > 0 or cfg.photo.enabled else None
         if noise is not None:
             extra["depth_noise"] = round(noise, 6) if math.isfinite(noise) else None
         if cfg.init is PoseInit.GICP:
             pred = self._gicp_init(i, frame, pred, extra, noise)
         cur_pyr = None
         if cfg.photo.enabled and n_valid_depth > 0 and noise is not None and noise >= cfg.photo.min_depth_noise:
-            pred, cur_pyr = self._photo_refine(i, frame, pred, noise, extra)
+            pred, cur_pyr = self._photo_refine(i, frame, pred, smooth, extra)
         if n_valid_depth == 0:
             # no depth: colour-only tracking is ill-posed at the paper's settings; keep the prediction
             c2w, loss, fallback, iters = pred, float("nan"), "no_valid_depth", 0
@@ -254,16 +257,12 @@ class SlamSystem:
         if i % cfg.map_every == 0:
             self._map(i, ft)
 
-    def _map_frame(self, frame: Frame) -> Frame:
-        """The frame the map learns from: `frame`, or with its depth after slam.gicp's filter when
-        `slam.map_filtered_depth` is set (which filters noisy depth only: `filtered_depth`)."""
-        g = self.cfg.slam.gicp
-        if not self.cfg.slam.map_filtered_depth or g.depth_filter <= 0:
+    def _map_frame(self, frame: Frame, smooth: np.ndarray) -> Frame:
+        """The frame the map learns from: `frame`, or with `smooth`, its depth after slam.gicp's filter
+        (`filtered_depth`: noisy depth only), when `slam.map_filtered_depth` is set."""
+        if not self.cfg.slam.map_filtered_depth or smooth is frame.depth:
             return frame
-        depth = filtered_depth(frame.depth, g)
-        if depth is frame.depth:
-            return frame
-        return dataclasses.replace(frame, depth=depth.astype(np.float32))
+        return dataclasses.replace(frame, depth=smooth.astype(np.float32))
 
     def _set_pose(self, i: int, c2w: torch.Tensor) -> None:
         """Frame i's pose, and the same pose relative to the last keyframe (docs/spec.md §7.6)."""
@@ -360,13 +359,14 @@ class SlamSystem:
             return pred
         return torch.as_tensor(c2w, dtype=pred.dtype, device=pred.device)
 
-    def _pyramid(self, frame: Frame, noise: float | None = None) -> list[PhotoLevel]:
-        """Photometric pyramid of a frame: its colour and its depth after the GICP stage's filter (slam.gicp)."""
+    def _pyramid(self, frame: Frame, smooth: np.ndarray | None = None) -> list[PhotoLevel]:
+        """Photometric pyramid of a frame: its colour and its depth after the GICP stage's filter (slam.gicp), given
+        as `smooth` when already computed."""
         intr = frame.intrinsics
-        depth = filtered_depth(frame.depth, self.cfg.slam.gicp, noise=noise)
+        depth = filtered_depth(frame.depth, self.cfg.slam.gicp) if smooth is None else smooth
         return build_pyramid(frame.rgb, depth, (intr.fx, intr.fy, intr.cx, intr.cy), self.cfg.slam.photo.levels)
 
-    def _photo_refine(self, i: int, frame: Frame, pred: torch.Tensor, noise: float,
+    def _photo_refine(self, i: int, frame: Frame, pred: torch.Tensor, smooth: np.ndarray,
                       rec: dict) -> tuple[torch.Tensor, list[PhotoLevel]]:
         """Photometric alignment of frame i onto the photometric keyframe from `pred` (slam.photo); returns the pose
         (`pred` when it fails: the reason goes to `rec` as photo_fallback) and the frame's pyramid. It may move a
@@ -377,7 +377,7 @@ class SlamSystem:
         k = self.state.photo_kfs[-1]
         if self._photo_ref is None or self._photo_ref[0] != k:  # after a resume
             self._photo_ref = (k, self._pyramid(self.dataset[k]))
-        cur = self._pyramid(frame, noise)
+        cur = self._pyramid(frame, smooth)
         T_k = self.est[k].double().cpu()
         T_ik = torch.linalg.inv(pred.double().cpu()) @ T_k
         res = align_photometric(self._photo_ref[1], cur, T_ik, pc, torch.Generator().manual_seed(self.cfg.seed + i))
