@@ -5,7 +5,15 @@ from __future__ import annotations
 import torch
 from rendering_helpers import Out, PlaneField, SphereField, T, camera_rays, rotation_x
 
-from inrslam.rendering import RenderConfig, SamplingConfig, build_renderer, first_crossing, render_rays, sample_depths
+from inrslam.rendering import (
+    RenderConfig,
+    SamplingConfig,
+    build_renderer,
+    first_crossing,
+    render_rays,
+    sample_depths,
+    surface_depth,
+)
 
 BOUNDS = torch.tensor([[-3.0, 3.0], [-3.0, 3.0], [-1.0, 5.0]], dtype=torch.float64)
 
@@ -67,3 +75,10 @@ def test_surface_depth_is_unbiased_where_the_weighted_mean_is_not():
         if isinstance(f, OneSidedPlane):
             torch.testing.assert_close(depth, t, atol=1e-9, rtol=0)
             assert (out.depth - t).abs().min().item() > 5e-3  # every ray's weighted mean at least 5 mm off
+
+
+def test_surface_depth_takes_the_crossing_and_the_fallback_where_there_is_none():
+    sdf = torch.tensor([[1.0, 0.5, -0.5], [1.0, 0.8, 0.2]])
+    z = torch.tensor([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
+    out = surface_depth(sdf, z, torch.tensor([7.0, 9.0]))
+    assert torch.allclose(out, torch.tensor([2.5, 9.0]))

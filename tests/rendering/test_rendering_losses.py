@@ -52,6 +52,24 @@ def test_mask_boundaries():
     assert tail.tolist() == [[False, True, True, False, True]]
 
 
+
+def test_behind_band_ends_the_sdf_terms_behind_the_depth():
+    # T = 0.125, D = 1: samples at D - T, D - T/8, D + T/8, D + T/4, D + T/2, D + T (exact binary fractions)
+    z = torch.tensor([[0.875, 0.984375, 1.015625, 1.03125, 1.0625, 1.125]])
+    D = torch.tensor([1.0])
+    full = sdf_masks(z, D, 0.125, 0.25)
+    assert all(torch.equal(a, b) for a, b in zip(full, sdf_masks(z, D, 0.125, 0.25, 1.0)))  # 1 = the paper's band
+    front, center, tail = sdf_masks(z, D, 0.125, 0.25, 0.25)  # up to D + T/4 only
+    assert center.tolist() == [[False, True, True, False, False, False]]
+    assert tail.tolist() == [[True, False, False, True, False, False]]  # D + T/4 is kept (closed), beyond dropped
+    assert torch.equal(front, full[0])  # free space in front is unchanged
+    assert not sdf_masks(z, D, 0.125, 0.25, 0.0)[2][0, 3:].any()  # 0: nothing behind the surface
+    # compute_losses honours LossConfig.behind: ray 0's sample 6 cm (0.6 T) behind its depth trains only with the band
+    for behind, trained in ((1.0, True), (0.3, False)):
+        out, rgb, D = _batch()
+        compute_losses(out, rgb, D, LossConfig(behind=behind), T)["total"].backward()
+        assert bool(out.sdf.grad[0, 4] != 0) is trained and bool(out.sdf.grad[0, 2] != 0)
+
 def test_per_ray_reduction_hand_computed():
     out, rgb, D = _batch()
     L = compute_losses(out, rgb, D, LossConfig(), T)

@@ -213,3 +213,12 @@ def test_photometric_keyframe_is_renewed_when_its_residual_grows(noisy, tmp_path
     recs = tracks(out)
     assert [r["photo_target"] for r in recs] == [r["frame"] - 1 for r in recs]
     assert all("fallback" not in r for r in recs)
+
+
+def test_gicp_prior_changes_the_photometric_refinement_only_when_set(noisy, tmp_path_factory):
+    out = run(tmp_path_factory, "photo_prior", "accurate", NOISY + ["slam.photo.gicp_prior=1"])
+    with_prior, without = tracks(out), tracks(noisy)
+    assert [r["photo_target"] for r in with_prior] == [r["photo_target"] for r in without]
+    # the prior holds the pose nearer GICP's: a smaller photometric move on every frame, and another trajectory
+    assert all(a["photo_shift_mm"] < b["photo_shift_mm"] for a, b in zip(with_prior, without))
+    assert (out / "trajectory.txt").read_text() != (noisy / "trajectory.txt").read_text()

@@ -17,6 +17,7 @@ from inrslam.slam.photometric import (
     photometric_residuals,
     reference_points,
     step_bound,
+    twist_small,
 )
 
 INTR = Intrinsics(fx=200.0, fy=200.0, cx=79.5, cy=59.5, width=160, height=120)
@@ -126,3 +127,58 @@ def test_a_view_without_gradient_where_the_points_land_is_a_fallback_not_a_crash
     res = align_photometric(ref, flat, start, PhotoConfig(enabled=True, grad_threshold=0.002),
                             torch.Generator().manual_seed(0))
     assert res.fallback == "photo_nan" and torch.equal(res.T_ik, start)
+
+
+def test_twist_small_inverts_se3_exp_to_first_order():
+    g = torch.Generator().manual_seed(3)
+    for scale in (1e-3, 1e-2):
+        xi = (torch.rand(6, generator=g, dtype=torch.float64) - 0.5) * 2 * scale
+        err = (twist_small(se3_exp(xi)) - xi).norm()
+        assert err < 2 * float(xi.norm()) ** 2  # O(|xi|^2)
+    assert torch.equal(twist_small(torch.eye(4, dtype=torch.float64)), torch.zeros(6, dtype=torch.float64))
+
+
+def test_a_prior_pins_the_directions_it_informs_and_leaves_the_others_to_the_image():
+    xi_true = [0.03, 0.02, -0.02, 0.0, 0.0, 0.0]
+    c2w_b = C2W_A @ motion(xi_true)
+    ref, cur = pyramids(c2w_b)
+    cfg = PhotoConfig(enabled=True, grad_threshold=0.002, iters=20)
+    T_true = torch.as_tensor(np.linalg.inv(c2w_b) @ C2W_A)
+    # the prior's pose is off by 1 cm sideways (x) and 5 mm forward (z) in the current camera ...
+    T_p = se3_exp(torch.tensor([0.01, 0.0, 0.005, 0.0, 0.0, 0.0], dtype=torch.float64)) @ T_true
+    # ... and informs only the forward translation (as GICP on a wall: depth fixes the distance, not the sliding)
+    info = torch.zeros(6, 6, dtype=torch.float64)
+    info[2, 2] = 1e14
+    start = torch.eye(4, dtype=torch.float64)
+    res = align_photometric(ref, cur, start, cfg, torch.Generator().manual_seed(0), (T_p, info, 1.0))
+    assert res.fallback is None
+    d_true = twist_small(res.T_ik @ torch.linalg.inv(T_true))
+    d_prior = twist_small(res.T_ik @ torch.linalg.inv(T_p))
+    assert abs(float(d_prior[2])) < 2e-4  # forward: the prior's
+    # sideways: the image's, near the truth (1 mm, the image's best fit with the distance held 5 mm off) and not
+    # the prior's 1 cm
+    assert abs(float(d_true[0])) < 2e-3 and abs(float(d_true[1])) < 2e-3 and abs(float(d_prior[0])) > 8e-3
+    # weight 0 = no prior, exactly
+    plain = align_photometric(ref, cur, start, cfg, torch.Generator().manual_seed(0))
+    zero = align_photometric(ref, cur, start, cfg, torch.Generator().manual_seed(0), (T_p, info, 0.0))
+    assert torch.equal(plain.T_ik, zero.T_ik)
+
+
+def test_affine_light_absorbs_an_exposure_change_that_biases_the_plain_alignment():
+    xi_true = [0.01, -0.03, 0.01, 0.02, -0.01, 0.01]
+    c2w_b = C2W_A @ motion(xi_true)
+    rgb_a, depth_a = wall_view(C2W_A)
+    rgb_b, depth_b = wall_view(c2w_b)
+    dark = 0.7 * rgb_b + 0.08  # the current frame exposed darker
+    ref, cur = build_pyramid(rgb_a, depth_a, K, 3), build_pyramid(dark, depth_b, K, 3)
+    start = torch.eye(4, dtype=torch.float64)
+
+    def error_mm(cfg):
+        res = align_photometric(ref, cur, start, cfg, torch.Generator().manual_seed(0))
+        est = C2W_A @ np.linalg.inv(res.T_ik.numpy())
+        return 1e3 * np.linalg.norm(est[:3, 3] - c2w_b[:3, 3]), res
+
+    plain, _ = error_mm(PhotoConfig(enabled=True, grad_threshold=0.002, iters=20, huber=1.0))
+    fitted, res = error_mm(PhotoConfig(enabled=True, grad_threshold=0.002, iters=20, huber=1.0, affine_light=True))
+    assert fitted < 1.0 < plain  # 1 mm of a 3.7 cm motion; without the brightness model it is off
+    assert res.light == pytest.approx((-0.3, 0.08), abs=5e-3)

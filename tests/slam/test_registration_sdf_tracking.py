@@ -17,6 +17,7 @@ from inrslam.slam.registration import (  # noqa: E402
     depth_points,
     hessian_degeneracy,
     moved_beyond,
+    pose_information,
     prepare_depth,
     register,
 )
@@ -102,6 +103,34 @@ def test_degeneracy_check_rejects_a_single_plane_view():
     reg = register(a, b, np.eye(4), cfg)
     assert not reg.ok and reg.reason == "degenerate"
     assert reg.degeneracy < GicpConfig().degeneracy_ratio  # ~1e-3: the floor of GICP's covariance regularisation
+
+
+def test_gicp_information_of_a_wall_lies_along_its_normal_in_the_source_camera():
+    # GICP's information (rho, omega) of the pose of frame b (source) seen 30 degrees turned from frame a (target):
+    # a wall fixes the translation along its normal and the rotations about in-plane axes; the normal must be b's
+    # (a right increment T exp(delta): delta in the source camera), not a's (cos^2 30 = 0.75 of the trace there)
+    cfg = GicpConfig(downsample=0.02, pixel_stride=1)
+    c2w_a = look_at((0.0, 0.0, 1.2), (2.0, 0.1, 1.1))
+    turn = np.eye(4)
+    turn[:3, :3] = se3_exp(torch.tensor([0, 0, 0, 0, np.radians(30.0), 0], dtype=torch.float64)).numpy()[:3, :3]
+    c2w_b = c2w_a @ turn
+    a = prepare_depth(plane_depth(WALL, c2w_a), INTR, cfg)
+    b = prepare_depth(plane_depth(WALL, c2w_b), INTR, cfg)
+    info = register(a, b, np.linalg.inv(c2w_a) @ c2w_b, cfg).information
+    n_b = c2w_b[:3, :3].T @ np.array([1.0, 0.0, 0.0])
+    n_a = c2w_a[:3, :3].T @ np.array([1.0, 0.0, 0.0])
+    tt, rr = info[:3, :3], info[3:, 3:]
+    assert n_b @ tt @ n_b / np.trace(tt) > 0.99 and n_a @ tt @ n_a / np.trace(tt) < 0.8
+    assert n_b @ rr @ n_b / np.trace(rr) < 0.01  # turning about the normal: unconstrained
+    assert np.allclose(info, info.T) and np.linalg.eigvalsh(info).min() > -1e-6 * np.trace(info)
+
+
+def test_pose_information_scales_the_hessian_by_the_residual_variance_and_reorders_it():
+    H = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])  # small_gicp order (omega, rho)
+    # error = sum r^T Omega r / 2 = 3 inliers x 3 axes x sigma^2 / 2 with sigma^2 = 0.5
+    info = pose_information(H, error=3 * 3 * 0.5 / 2, inliers=3)
+    assert np.allclose(np.diag(info), np.array([4.0, 5.0, 6.0, 1.0, 2.0, 3.0]) / 0.5)
+    assert pose_information(H, 0.0, 3) is None and pose_information(H, 1.0, 0) is None
 
 
 def test_keyframe_renewal_rule_on_analytic_motions():

@@ -46,3 +46,9 @@ def first_crossing(sdf: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
     t = s0 / (s0 - s1).clamp_min(1e-8)
     zc = z[r, k] + t * (z[r, k + 1] - z[r, k])
     return torch.where(has, zc, torch.zeros_like(zc)), has
+
+
+def surface_depth(sdf: Tensor, z: Tensor, fallback: Tensor) -> Tensor:
+    """(R,) `first_crossing` depth of each ray, `fallback` (R,) (e.g. the weighted mean depth) where it has none."""
+    zc, has = first_crossing(sdf, z)
+    return torch.where(has, zc, fallback)

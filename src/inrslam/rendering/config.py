@@ -16,6 +16,9 @@ class NormalsMethod(str, Enum):
     AUTOGRAD = "autograd"  # exact gradient, differentiable (create_graph) so the loss trains the field through it
     AUTOGRAD_DETACHED = "autograd_detached"  # exact gradient, treated as a constant (as the reference code)
     FINITE_DIFFERENCE = "finite_difference"  # central differences, 6 extra field queries, first-order autograd only
+    #: no gradient at all: NeuS's slope ⟨d/|d|, ∇f⟩ from the ray's own samples, (f_{i+1} - f_{i-1}) / metric step
+    #: (`functional.ray_slope`); zero extra queries, first-order autograd only
+    RAY_DIFFERENCE = "ray_difference"
 
 
 class NerfActivation(str, Enum):
@@ -53,7 +56,8 @@ class NeusConfig:
 
     init_log_inv_s: float = 5.0  # initial log of the inverse std inv_s (1/m); e^5 = 148/m ~ 7 mm
     learn_s: bool = True  # optimise inv_s (the reference keeps it fixed)
-    normals: NormalsMethod = NormalsMethod.AUTOGRAD  # how the SDF gradient is computed
+    normals: NormalsMethod = NormalsMethod.AUTOGRAD  # how the slope is computed: autograd | autograd_detached |
+    #   finite_difference | ray_difference (see NormalsMethod)
     fd_eps: float = 0.005  # finite-difference step, metres
     anneal_end: float = 0.0  # cos annealing length as a fraction of the run (0 = true cosine from start)
 
@@ -113,5 +117,6 @@ class LossConfig:
     center: float = 50.0  # lambda_c, weight of the SDF term within +-center_band*T of the depth
     tail: float = 200.0  # lambda_t, weight of the SDF term in the rest of the +-T band
     center_band: float = 0.4  # half-width of the centre band in units of T
+    behind: float = 1.0  # the SDF terms reach this far behind the observed depth, units of T (1 = the paper's band)
     free_space_target: float = 1.0  # free-space SDF target, T-units ('loss variant' of docs/spec.md §7.8: 0.1)
     reduction: LossReduction = LossReduction.PER_RAY  # averaging of the SDF terms

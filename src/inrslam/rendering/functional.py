@@ -182,6 +182,33 @@ def neus_alpha(sdf_prev: Tensor, sdf_next: Tensor, inv_s: Tensor | float) -> Ten
     return ((cdf_prev - cdf_next) / (cdf_prev + 1e-5)).clamp(0.0, 1.0)
 
 
+def ray_slope(sdf: Tensor, z: Tensor, ray_norm: Tensor, min_step: float = 1e-6) -> Tensor:
+    """Directional derivative of the SDF along the unit ray from the samples themselves (no field query).
+
+    c_i = (f_{i+1} - f_{i-1}) / ((z_{i+1} - z_{i-1}) |d|) inside, one-sided (f_1 - f_0) / ((z_1 - z_0)|d|) and
+    (f_{S-1} - f_{S-2}) / ((z_{S-1} - z_{S-2})|d|) at the ends: the slope NeuS's own up-sampling takes from
+    consecutive samples (Wang et al. NeurIPS 2021, `up_sample`), here centred on the sample. Exact for an SDF that is
+    linear along the ray (a plane); first-order in the field (no second derivatives), so cheap.
+
+    Args:
+        sdf: (R, S) metric SDF f at the samples, metres.
+        z: (R, S) sorted sample z-depths, metres; at least 2 samples.
+        ray_norm: (R, 1) |d| (metres of ray per metre of z).
+        min_step: lower bound of the metric step in the denominator, metres (coincident samples).
+    Returns:
+        (R, S) slope ⟨d/|d|, ∇f⟩ estimate, dimensionless (-1 when walking straight into a plane).
+
+    Example: f = [0.3, 0.1, -0.1], z = [0, 0.2, 0.4], |d| = 1 -> c = [-1, -1, -1].
+    """
+    if z.shape[-1] < 2:
+        raise ValueError(f"ray_slope needs at least 2 samples per ray, got {z.shape[-1]}")
+    fp = torch.cat([sdf[..., 1:2], sdf[..., 2:], sdf[..., -1:]], dim=-1)
+    fm = torch.cat([sdf[..., :1], sdf[..., :-2], sdf[..., -2:-1]], dim=-1)
+    zp = torch.cat([z[..., 1:2], z[..., 2:], z[..., -1:]], dim=-1)
+    zm = torch.cat([z[..., :1], z[..., :-2], z[..., -2:-1]], dim=-1)
+    return (fp - fm) / ((zp - zm) * ray_norm).clamp_min(min_step)
+
+
 def neus_section_sdf(sdf: Tensor, slope: Tensor, z: Tensor, starts: Tensor, ends: Tensor, ray_norm: Tensor
                      ) -> tuple[Tensor, Tensor]:
     """First-order SDF estimates at the section bounds: f(b) = f_i + slope_i (b - z_i) |d|.

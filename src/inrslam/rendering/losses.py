@@ -7,7 +7,8 @@ Per sample i of a ray with depth D (T = truncation, metres; s in T-units; z z-de
     front (free space)  z < D - T                       e = s - target (target 1 T-unit; 0.1 = 'loss variant')
     centre              |z - D| < center_band·T         e = z + s·T - D  (Eq. 2)
     tail                |z - D| <= T and not centre     e = z + s·T - D
-    (behind, z > D + T: unsupervised)
+    (behind, z > D + T: unsupervised; with `behind` = b < 1 already z > D + b·T: a ray grazing an object's silhouette
+    leaves the object soon after its depth, and 'inside' targets a full T behind it widen the object)
 Reduction: `per_ray` = mean of e² over each ray's masked samples, then mean over the rays having such samples
 (Eqs. 3, 5); `global` = mean of e² over every masked sample of the batch (the reference code, docs/spec.md §13.16).
 Empty sets contribute exactly 0 (never NaN).
@@ -57,12 +58,13 @@ def masked_sample_mean(values: Tensor, mask: Tensor, reduction: LossReduction) -
     return per_ray.sum() / (count > 0).sum().clamp_min(1)
 
 
-def sdf_masks(z: Tensor, target_depth: Tensor, truncation: float, center_band: float = 0.4
+def sdf_masks(z: Tensor, target_depth: Tensor, truncation: float, center_band: float = 0.4, behind: float = 1.0
               ) -> tuple[Tensor, Tensor, Tensor]:
     """Per-sample masks (front, centre, tail), all False on rays without depth.
 
     Args:
-        z: (R, S) metres; target_depth: (R,) metres (0 = none); truncation: T metres; center_band: in units of T.
+        z: (R, S) metres; target_depth: (R,) metres (0 = none); truncation: T metres; center_band: in units of T;
+        behind: centre and tail end at z <= D + behind·T (units of T).
     Returns:
         front z < D - T; centre |z - D| < center_band·T; tail |z - D| <= T and not centre; each (R, S) bool.
     """
@@ -70,8 +72,9 @@ def sdf_masks(z: Tensor, target_depth: Tensor, truncation: float, center_band: f
     valid = d > 0
     diff = z - d
     front = (diff < -truncation) & valid
-    center = (diff.abs() < center_band * truncation) & valid
-    tail = (diff.abs() <= truncation) & ~center & valid
+    near = valid if behind >= 1.0 else valid & (diff <= behind * truncation)
+    center = (diff.abs() < center_band * truncation) & near
+    tail = (diff.abs() <= truncation) & ~center & near
     return front, center, tail
 
 
@@ -96,7 +99,7 @@ def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, 
     terms = {"color": color, "depth": depth}
     total = cfg.color * color + cfg.depth * depth
     if sdf_terms:
-        front, center, tail = sdf_masks(out.z, target_depth, truncation, cfg.center_band)
+        front, center, tail = sdf_masks(out.z, target_depth, truncation, cfg.center_band, cfg.behind)
         fs_err = (out.sdf - cfg.free_space_target) ** 2
         sdf_err = (out.z + out.sdf * truncation - target_depth[:, None]) ** 2
         terms["free_space"] = masked_sample_mean(fs_err, front, reduction)

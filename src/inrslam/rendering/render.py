@@ -8,6 +8,7 @@ from typing import Any, Callable, Optional
 import torch
 from torch import Tensor
 
+from inrslam.fields.kernels import input_grad_only, second_order
 from inrslam.rendering.compositing import composite
 from inrslam.rendering.config import NormalsMethod
 
@@ -54,7 +55,10 @@ def sdf_gradient_autograd(
 
     Only the SDF output is differentiated (`include_rgb` = the reference code's sum of all outputs). The points get
     `requires_grad` only locally (a detached copy if they did not need grad already), so no gradient leaks into
-    tensors the caller did not ask for.
+    tensors the caller did not ask for. With `create_graph` the field is queried inside `kernels.second_order()`:
+    fused CPU lookups then keep their input Jacobian and Hessian cross terms, so that the loss's second-order
+    backward stays fused (`MultilinearJacFn`); the gradient itself is taken inside `kernels.input_grad_only()`
+    (no table gradients are computed for it).
 
     Args:
         field: callable (N, 3) -> object with .sdf (N,) and .rgb_logits (N, 3).
@@ -68,11 +72,16 @@ def sdf_gradient_autograd(
     grad_mode = torch.is_grad_enabled()
     with torch.enable_grad():
         x = points if points.requires_grad else points.detach().requires_grad_(True)
-        sdf, logits = _query(field, x)
+        if create_graph and grad_mode:  # fused lookups keep their Jacobian for the second-order backward
+            with second_order():
+                sdf, logits = _query(field, x)
+        else:
+            sdf, logits = _query(field, x)
         target = sdf + logits.sum(-1) if include_rgb else sdf
-        (grad,) = torch.autograd.grad(
-            target.sum(), x, create_graph=create_graph and grad_mode, retain_graph=grad_mode, allow_unused=True
-        )
+        with input_grad_only():  # only ∂/∂x is asked for: the fused lookups skip their table gradients
+            (grad,) = torch.autograd.grad(
+                target.sum(), x, create_graph=create_graph and grad_mode, retain_graph=grad_mode, allow_unused=True
+            )
     if grad is None:
         grad = torch.zeros_like(points)
     if not (create_graph and grad_mode):

@@ -113,8 +113,9 @@ class NeusWeights(SdfToWeights):
     near the converged sharpness that the 60-sample layout can resolve (tests/rendering: 1.8 mm plane/sphere depth
     error at e^5 vs 5 mm at e^6, and one-frame fits reach ~1 cm depth L1 at e^5 vs ~2.4 cm at e^4).
 
-    Normals: `AUTOGRAD` (default; second-order backward through the field), `FINITE_DIFFERENCE` (6 extra
-    queries, first-order only) or `AUTOGRAD_DETACHED` (cheapest; the cosine does not train the field).
+    Normals: `AUTOGRAD` (default; second-order backward through the field, fused on CPU), `FINITE_DIFFERENCE` (6
+    extra queries, first-order only), `AUTOGRAD_DETACHED` (the cosine does not train the field) or `RAY_DIFFERENCE`
+    (no normals: ĉ_i from the ray's own samples, `functional.ray_slope`; zero extra queries, first-order only).
 
     Annealing: NeuS anneals the cosine from (cos-1)/2 to -ReLU(-cos) over the first `anneal_end` of training.
     We default to no annealing (`render.neus.anneal_end = 0`): in SLAM the SDF is supervised directly from depth from
@@ -137,6 +138,7 @@ class NeusWeights(SdfToWeights):
         else:
             self.log_inv_s = _scalar_param(cfg.neus.init_log_inv_s, cfg.neus.learn_s)
             self.anneal_end = float(cfg.neus.anneal_end)
+        self.needs_normals = self.normals_method is not NormalsMethod.RAY_DIFFERENCE
 
     @property
     def inv_s(self) -> Tensor:
@@ -147,7 +149,7 @@ class NeusWeights(SdfToWeights):
         return 1.0 if self.anneal_end <= 0 else min(self.progress / self.anneal_end, 1.0)
 
     def forward(self, sdf, z, dirs, normals, truncation):
-        if normals is None:
+        if normals is None and self.needs_normals:
             raise ValueError("the neus renderer needs normals (R, S, 3); call it through render_rays")
         if self.faithful:
             cos = (dirs[:, None, :] * normals).sum(-1)
@@ -156,8 +158,11 @@ class NeusWeights(SdfToWeights):
             alpha = F.neus_alpha(sdf - slope * delta * 0.5, sdf + slope * delta * 0.5, self.inv_s)
             return F.weights_from_alpha(alpha, eps=1e-7)  # as the reference: Σw may exceed 1 by ~S·1e-7
         ray_norm = dirs.norm(dim=-1, keepdim=True)
-        unit = dirs / ray_norm.clamp_min(1e-12)
-        cos = (unit[:, None, :] * normals).sum(-1) * truncation  # directional derivative of the metric SDF
+        if self.needs_normals:
+            unit = dirs / ray_norm.clamp_min(1e-12)
+            cos = (unit[:, None, :] * normals).sum(-1) * truncation  # directional derivative of the metric SDF
+        else:
+            cos = F.ray_slope(sdf * truncation, z, ray_norm)
         slope = F.neus_annealed_cos(cos, self.anneal_ratio())
         starts, ends = F.section_bounds(z)
         f_prev, f_next = F.neus_section_sdf(sdf * truncation, slope, z, starts, ends, ray_norm)

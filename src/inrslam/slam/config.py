@@ -95,6 +95,9 @@ class PhotoConfig:
     kf_dist: float = 0.3  # a new photometric keyframe after this much motion from it, metres ...
     kf_angle: float = 25.0  # ... or this much rotation, degrees, ...
     kf_rms_factor: float = 0.0  # ... or once the residual RMS exceeds this x the first one onto it (0 = off)
+    affine_light: bool = False  # also fit an affine brightness change (1 + a) I + b of the reference (exposure)
+    gicp_prior: float = 0.0  # weight of GICP's pose and Hessian as a prior of the alignment (0 = off; 1 = each
+    # residual's own variance; docs/accurate.md)
 
 
 @dataclass
@@ -170,6 +173,8 @@ class SlamConfig:
     ba_lr: float = 1e-3  # Adam learning rate of keyframe poses
     ba_pose_every: int = 5  # pose step every N mapping iterations (gradients accumulate in between)
     keyframe_fraction: float = 0.05  # fraction of each keyframe's pixels kept for global sampling (Table 3: 0.005)
+    keyframe_edge_fraction: float = 0.0  # and up to this fraction of its pixels from depth edges (silhouettes) ...
+    keyframe_edge_jump: float = 0.05  # ... pixels whose depth differs from a 4-neighbour's by more, metres
     max_pose_jump: float = 0.5  # metres; a tracked pose moving more than this from the prediction is rejected
     loop_closure: bool = False  # detect revisits, optimise the keyframe pose graph, re-fit the map (slam.loop)
     loop: LoopConfig = field(default_factory=LoopConfig)  # settings of loop closure

@@ -36,8 +36,26 @@ class FrameTensors:
         u, v = sample_pixels(H, W, n, edge, generator, self.device)
         return self.rays(v * W + u)
 
+    def edge_pixels(self, jump: float) -> Tensor:
+        """Flat indices of the depth-edge pixels: valid depth differing by more than `jump` metres from a valid
+        4-neighbour (both sides of a silhouette)."""
+        H, W = self.intr.height, self.intr.width
+        return torch.nonzero(depth_edges(self.depth.reshape(H, W), jump).reshape(-1)).reshape(-1)
+
     def random_rays(self, n: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
         """n distinct pixels drawn from a full random permutation (the keyframe ray store's choice)."""
         H, W = self.intr.height, self.intr.width
         idx = torch.randperm(H * W, generator=generator)[:n].to(self.device)
         return self.rays(idx)
+
+
+def depth_edges(depth: Tensor, jump: float) -> Tensor:
+    """(H, W) bool: valid depth (> 0) whose difference to a valid 4-neighbour exceeds `jump` (same unit)."""
+    edge = torch.zeros_like(depth, dtype=torch.bool)
+    valid = depth > 0
+    for a, b in (((slice(None), slice(1, None)), (slice(None), slice(None, -1))),
+                 ((slice(1, None), slice(None)), (slice(None, -1), slice(None)))):
+        step = valid[a] & valid[b] & ((depth[a] - depth[b]).abs() > jump)
+        edge[a] |= step
+        edge[b] |= step
+    return edge

@@ -25,6 +25,7 @@ from inrslam.rendering import (
     render_rays,
     renderer_param_groups,
     sample_depths,
+    surface_depth,
 )
 
 
@@ -129,11 +130,7 @@ class SceneModel(nn.Module):
             z = sample_depths(guess, dirs, origins, self.bounds, no_jitter, self.truncation, None)
             out = render_rays(self.field, self.renderer, origins, dirs, z, self.truncation)
             rgb_out.append(out.rgb)
-            if surface:
-                zc, has = first_crossing(out.sdf, out.z)
-                depth_out.append(torch.where(has, zc, out.depth))
-            else:
-                depth_out.append(out.depth)
+            depth_out.append(surface_depth(out.sdf, out.z, out.depth) if surface else out.depth)
         return torch.cat(rgb_out).reshape(H, W, 3), torch.cat(depth_out).reshape(H, W)
 
     @torch.no_grad()

@@ -53,6 +53,7 @@ class PhotoResult:
     n_points: int  # reference pixels used at the finest level
     rms: float  # Huber-weighted RMS intensity residual at the finest level (nan if none)
     fallback: str | None  # "photo_few_points" / "photo_nan" (input pose kept), or None
+    light: tuple[float, float] | None = None  # affine brightness (alpha, beta) (slam.photo.affine_light)
 
 
 def _gradients(img: Tensor) -> tuple[Tensor, Tensor]:
@@ -137,9 +138,25 @@ def photometric_residuals(cur: PhotoLevel, X_k: Tensor, I_k: Tensor, T_ik: Tenso
     return torch.where(valid, r, torch.zeros_like(r)), J * valid[:, None], valid
 
 
+def twist_small(D: Tensor) -> Tensor:
+    """First-order twist (rho, omega) of a near-identity pose D (4, 4): rho = t, omega = vee((R - R^T) / 2); exact
+    to first order in the angle (se3_exp(xi) -> xi + O(|xi|^2))."""
+    R = D[:3, :3]
+    omega = 0.5 * torch.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return torch.cat([D[:3, 3], omega])
+
+
 def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor, cfg,
-                      generator: torch.Generator | None = None) -> PhotoResult:
+                      generator: torch.Generator | None = None,
+                      prior: tuple[Tensor, Tensor, float] | None = None) -> PhotoResult:
     """Coarse-to-fine Gauss-Newton of T_ik (reference camera -> current camera, (4, 4)) on the photometric residuals.
+
+    With a `prior` (T_p (4, 4), its information Lambda (6, 6) in the left twist of T_ik, weight lam) the cost gains
+    lam/2 e^T Lambda e, e = twist of T T_p^-1 (`twist_small`): per step, with the photometric residuals scaled by
+    their own variance (the current weighted RMS^2), (H + lam rms^2 Lambda) xi = -(b + lam rms^2 Lambda e). It pulls
+    the pose towards T_p where that is well constrained and leaves it free where it is not (a degenerate view).
+    With `cfg.affine_light` the reference's intensities are (1 + alpha) I_k + beta, alpha and beta solved with the
+    twist (8 unknowns; dr/dalpha = -I_k, dr/dbeta = -1): an exposure change is not read as motion.
 
     Args:
         ref, cur: pyramids of the reference keyframe (with depth) and the current frame (`build_pyramid`).
@@ -148,6 +165,8 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
     """
     start = T_ik.detach().to(torch.float64).clone()
     T = start.clone()
+    light = torch.zeros(2, dtype=torch.float64)  # (alpha, beta): I_k is seen as (1 + alpha) I_k + beta
+    n_par = 8 if getattr(cfg, "affine_light", False) else 6
     total, n_used, rms = 0, 0, float("nan")
     for lvl in reversed(range(len(ref))):
         X_k, I_k = reference_points(ref[lvl], cfg.grad_threshold, cfg.max_points, generator)
@@ -156,22 +175,33 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
             n_used = int(valid.sum())
             if n_used < cfg.min_points / 4 ** lvl:
                 return PhotoResult(start, total, n_used, rms, "photo_few_points")
+            if n_par == 8:  # affine brightness: r = I_i(pi(X_i)) - (1 + alpha) I_k - beta
+                r = (r - light[0] * I_k - light[1]) * valid
+                J = torch.cat([J, -I_k[:, None] * valid[:, None], -valid[:, None].to(J.dtype)], dim=1)
             a = r.abs()
             w = torch.where(a <= cfg.huber, torch.ones_like(a), cfg.huber / a.clamp_min(1e-12)) * valid
             H = (J * w[:, None]).T @ J
             b = (J * w[:, None]).T @ r
             rms = float(torch.sqrt((w * r * r).sum() / w.sum().clamp_min(1e-12)))
             total += 1
+            if prior is not None:
+                T_p, info, lam = prior
+                L = (lam * rms * rms) * info
+                H[:6, :6] = H[:6, :6] + L
+                b[:6] = b[:6] + L @ twist_small(T @ torch.linalg.inv(T_p))
             try:
-                xi = -torch.linalg.solve(H + 1e-9 * torch.diagonal(H).mean() * torch.eye(6, dtype=H.dtype), b)
+                step = -torch.linalg.solve(H + 1e-9 * torch.diagonal(H).mean() * torch.eye(n_par, dtype=H.dtype), b)
             except torch.linalg.LinAlgError:  # no intensity gradient where the points land: nothing constrained
-                xi = torch.full((6,), float("nan"), dtype=H.dtype)
-            if not bool(torch.isfinite(xi).all()):
+                step = torch.full((n_par,), float("nan"), dtype=H.dtype)
+            if not bool(torch.isfinite(step).all()):
                 return PhotoResult(start, total, n_used, rms, "photo_nan")
+            xi = step[:6]
             T = se3_exp(xi) @ T
+            if n_par == 8:
+                light = light + step[6:]
             if float(xi.norm()) < cfg.tol:
                 break
-    return PhotoResult(T, total, n_used, rms, None)
+    return PhotoResult(T, total, n_used, rms, None, (float(light[0]), float(light[1])) if n_par == 8 else None)
 
 
 def step_bound(recent: list[float], weak: bool, cfg) -> float:

@@ -32,6 +32,7 @@ class Registration:
     fitness: float  # inlier fraction of the source points, [0, 1]
     degeneracy: float  # min over the rotation / translation blocks of lambda_min / lambda_max, [0, 1]
     iterations: int
+    information: np.ndarray | None = None  # (6, 6) H / sigma^2 at the final pose, (rho, omega) (`pose_information`)
 
 
 def _small_gicp():
@@ -133,4 +134,17 @@ def register(target: PreparedCloud, source: PreparedCloud, init_T: np.ndarray, c
         reason = "degenerate"
     elif np.linalg.norm(T[:3, 3] - init_T[:3, 3]) > cfg.max_step:
         reason = "jump"
-    return Registration(T, reason is None, reason, fitness, degeneracy, int(res.iterations))
+    return Registration(T, reason is None, reason, fitness, degeneracy, int(res.iterations),
+                        pose_information(np.asarray(res.H), float(res.error), int(res.num_inliers)))
+
+
+def pose_information(H: np.ndarray, error: float, inliers: int) -> np.ndarray | None:
+    """GICP's information matrix of its pose: H / sigma^2, sigma^2 = 2 error / (3 inliers) the residuals' variance
+    per axis (error = sum_i r_i^T Omega_i r_i / 2 at the solution, H = sum_i J_i^T Omega_i J_i). small_gicp's H is
+    w.r.t. a right increment T exp(delta), delta = (omega, rho); returned re-ordered to (rho, omega). For the
+    relative pose T^-1 A of another frame A (a left increment exp(-delta) T^-1 A), the same matrix holds.
+    None when there is no residual to scale by."""
+    if inliers < 1 or not np.isfinite(error) or error <= 0 or not np.isfinite(H).all():
+        return None
+    order = [3, 4, 5, 0, 1, 2]
+    return np.asarray(H, dtype=np.float64)[np.ix_(order, order)] * (1.5 * inliers / error)

@@ -131,6 +131,7 @@ class SlamSystem:
         self._kf_points: dict[int, np.ndarray] = {}
         # the photometric reference (frame index, pyramid), in memory only (rebuilt from the dataset after a resume)
         self._photo_ref: tuple[int, list[PhotoLevel]] | None = None
+        self._gicp_information: np.ndarray | None = None  # the current frame's GICP information (`pose_information`)
 
     def _make_model(self) -> SceneModel:
         """The map the loop trains (a subclass with another mapper may return its own `SceneModel` subclass)."""
@@ -221,6 +222,7 @@ class SlamSystem:
         fallback: str | None
         if noise is not None:
             extra["depth_noise"] = round(noise, 6) if math.isfinite(noise) else None
+        self._gicp_information = None
         if cfg.init is PoseInit.GICP:
             pred = self._gicp_init(i, frame, pred, extra, noise)
         cur_pyr = None
@@ -343,6 +345,7 @@ class SlamSystem:
             target, base = self._target_cloud[1], self.est[t_idx].double().cpu().numpy()
         reg = register(target, cur, np.linalg.inv(base) @ pred.double().cpu().numpy(), g)
         rec.update(gicp_fitness=round(reg.fitness, 4), gicp_degeneracy=round(reg.degeneracy, 4), gicp_target=t_idx)
+        self._gicp_information = reg.information  # of this frame's GICP pose (a photometric prior, slam.photo)
         c2w = base @ reg.T_target_source
         if g.target is GicpTarget.PREVIOUS:
             self._target_cloud = (i, cur)
@@ -380,7 +383,11 @@ class SlamSystem:
         cur = self._pyramid(frame, smooth)
         T_k = self.est[k].double().cpu()
         T_ik = torch.linalg.inv(pred.double().cpu()) @ T_k
-        res = align_photometric(self._photo_ref[1], cur, T_ik, pc, torch.Generator().manual_seed(self.cfg.seed + i))
+        prior = None
+        if pc.gicp_prior > 0 and "init_fallback" not in rec and self._gicp_information is not None:
+            prior = (T_ik.clone(), torch.as_tensor(self._gicp_information), pc.gicp_prior)  # T_ik is GICP's here
+        res = align_photometric(self._photo_ref[1], cur, T_ik, pc, torch.Generator().manual_seed(self.cfg.seed + i),
+                                prior)
         c2w = T_k @ torch.linalg.inv(res.T_ik)
         fallback = res.fallback
         shift = float(torch.linalg.norm(c2w[:3, 3] - pred[:3, 3].double().cpu()))
@@ -392,6 +399,8 @@ class SlamSystem:
         rec.update(photo_iters=res.iters, photo_points=res.n_points, photo_target=k,
                    photo_rms=round(res.rms, 5) if math.isfinite(res.rms) else None,
                    photo_shift_mm=round(shift * 1e3, 3) if math.isfinite(shift) else None)
+        if res.light is not None:
+            rec["photo_light"] = [round(res.light[0], 4), round(res.light[1], 4)]
         if fallback:
             rec["photo_fallback"] = fallback
             return pred, cur
@@ -478,7 +487,14 @@ class SlamSystem:
     def _add_keyframe(self, i: int, ft: FrameTensors) -> None:
         cfg = self.cfg.slam
         n = max(1, int(round(cfg.keyframe_fraction * ft.intr.height * ft.intr.width)))
-        self.store.add(i, *ft.random_rays(n, self.generator))
+        dirs, rgb, depth = ft.random_rays(n, self.generator)
+        if cfg.keyframe_edge_fraction > 0:  # silhouettes: a few percent of the pixels, most of a render's depth error
+            edges = ft.edge_pixels(cfg.keyframe_edge_jump)
+            m = min(edges.numel(), int(round(cfg.keyframe_edge_fraction * ft.intr.height * ft.intr.width)))
+            if m > 0:
+                extra = ft.rays(edges[torch.randperm(edges.numel(), generator=self.generator)[:m].to(edges.device)])
+                dirs, rgb, depth = (torch.cat([a, b]) for a, b in zip((dirs, rgb, depth), extra))
+        self.store.add(i, dirs, rgb, depth)
         if cfg.loop_closure and self.given is None and i > 0:
             t0 = time.perf_counter()
             self._close_loop(i, ft.frame)

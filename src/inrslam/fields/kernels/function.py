@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import threading
 import weakref
 
 import numba
@@ -158,10 +160,104 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, 
                         lambda rows, vals: sparse_rows.compact_entries(cap_off, counts, out_rows, out_vals, rows, vals))
 
 
-class MultilinearFn(torch.autograd.Function):
-    """Fused lookup: forward (N,E,F); backward to xn (dense) and to the table (sparse rows or dense).
+class _Scopes(threading.local):
+    """Depths of the nested ``input_grad_only`` / ``second_order`` scopes of the current thread (the autograd engine
+    runs a CPU backward pass on the thread that started it, so a scope around ``autograd.grad`` reaches it)."""
 
-    Double backward (``create_graph=True``, e.g. losses on SDF normals) recomputes through the reference.
+    input_grad_only = 0
+    second_order = 0
+
+
+_SCOPES = _Scopes()
+
+
+@contextlib.contextmanager
+def second_order():
+    """Within this scope, fused lookups whose points need a gradient (grad mode on) are ``MultilinearJacFn``: they
+    also output their input Jacobian, so that a ``create_graph`` input gradient taken from them (SDF normals) is
+    differentiated again by the same fused node, in one table scatter. Lookups outside are unchanged."""
+    _SCOPES.second_order += 1
+    try:
+        yield
+    finally:
+        _SCOPES.second_order -= 1
+
+
+@contextlib.contextmanager
+def input_grad_only():
+    """Within this scope, backward passes of ``MultilinearFn`` return no table gradient: for
+    ``torch.autograd.grad(out, points)`` (SDF normals), where the engine discards the table's gradient anyway, so
+    that neither the fused table backward nor (``create_graph``) the reference's runs for nothing. Per thread."""
+    _SCOPES.input_grad_only += 1
+    try:
+        yield
+    finally:
+        _SCOPES.input_grad_only -= 1
+
+
+def _table_grad_coo(rows: np.ndarray, vals: np.ndarray, shape, sparse: bool) -> torch.Tensor:
+    """(M,F) table gradient from per-corner rows (...,) int64 (−1: none) and values (..., F): an uncoalesced
+    sparse COO tensor (``sparse``; the optimizer sums duplicate rows) or a dense one."""
+    r = torch.from_numpy(rows.reshape(-1))
+    v = torch.from_numpy(vals.reshape(-1, shape[1]))
+    keep = r >= 0
+    r, v = r[keep], v[keep]
+    if sparse:
+        return torch.sparse_coo_tensor(r[None], v, shape, check_invariants=False)
+    return torch.zeros(shape, dtype=v.dtype).index_add_(0, r, v)
+
+
+class InputGradFn(torch.autograd.Function):
+    """The input gradient of the lookup as a differentiable function: gx[n,a] = Σ_{e,f} g[n,e,f] ∂out[n,e,f]/∂p̂_a
+    (g (N,E,F) the lookup's output gradient, xn (N,3), table (M,F) -> (N,3)), with a fused backward to g, xn and
+    the table (``generic.interp_backward_x_backward``). This is what makes ``create_graph`` backward passes (NeuS
+    normals) fused: the second derivatives of the interpolation are its cross terms, the table gradient is a
+    scatter with derivative weights. Once differentiable (no third derivatives)."""
+
+    @staticmethod
+    def forward(ctx, g: torch.Tensor, xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, jac, sparse: bool
+                ) -> torch.Tensor:
+        g_np = g.detach().contiguous().numpy()
+        gx64 = np.zeros((xn.shape[0], 3), np.float64)
+        if jac is not None:  # trilinear: the forward kept the Jacobian
+            trilinear.tri_backward_x_jac(jac, g_np, gx64)
+        else:
+            generic.interp_backward_x(xn.detach().contiguous().numpy(), table.detach().numpy(), g_np, *_meta(layout),
+                                      gx64)
+        ctx.save_for_backward(g, xn, table)
+        ctx.layout = layout
+        ctx.sparse = sparse
+        return torch.from_numpy(gx64).to(xn.dtype)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, ggx: torch.Tensor):
+        g, xn, table = ctx.saved_tensors
+        layout = ctx.layout
+        need_g, need_x, need_t = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[2]
+        N, E, F = g.shape
+        C = 1 << int(layout.ndim.max())
+        tab = table.detach().numpy()
+        grad_g = np.empty((N if need_g else 0, E, F), tab.dtype)
+        gxx = np.zeros((N, 3), np.float64)
+        out_rows = np.empty((N if need_t else 0, E, C), np.int64)
+        out_vals = np.empty((N if need_t else 0, E, C, F), tab.dtype)
+        generic.interp_backward_x_backward(xn.detach().contiguous().numpy(), tab, g.detach().contiguous().numpy(),
+                                           ggx.detach().to(torch.float64).contiguous().numpy(), *_meta(layout),
+                                           need_g, grad_g, gxx, out_rows, out_vals)
+        gg = torch.from_numpy(grad_g) if need_g else None
+        gx = torch.from_numpy(gxx).to(xn.dtype) if need_x else None
+        gt = _table_grad_coo(out_rows, out_vals, tuple(table.shape), ctx.sparse) if need_t else None
+        return gg, gx, gt, None, None, None
+
+
+class MultilinearFn(torch.autograd.Function):
+    """Fused lookup: forward (N,E,F); backward to xn (dense) and to the table (sparse rows or dense; none inside
+    ``input_grad_only``).
+
+    Double backward (``create_graph=True``, e.g. losses on SDF normals): the input gradient is ``InputGradFn``
+    (fused, differentiable once more); the table gradient is recomputed through the reference, or skipped inside
+    ``input_grad_only``.
     """
 
     @staticmethod
@@ -188,13 +284,13 @@ class MultilinearFn(torch.autograd.Function):
     def backward(ctx, g: torch.Tensor):
         xn, table = ctx.saved_tensors
         layout = ctx.layout
-        need_x, need_t = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        if torch.is_grad_enabled():  # create_graph: differentiate the (twice-differentiable) reference
-            inputs = [v for v, need in ((xn, need_x), (table, need_t)) if need]
-            out = interp_torch(xn, table, layout)
-            grads = list(torch.autograd.grad(out, inputs, g, create_graph=True, allow_unused=True))
-            gx = grads.pop(0) if need_x else None
-            gt = grads.pop(0) if need_t else None
+        need_x, need_t = ctx.needs_input_grad[0], ctx.needs_input_grad[1] and not _SCOPES.input_grad_only
+        if torch.is_grad_enabled():  # create_graph: a differentiable input gradient
+            gx = InputGradFn.apply(g, xn, table, layout, ctx.jac, ctx.sparse) if need_x else None
+            gt = None
+            if need_t:  # a differentiable table gradient: through the reference
+                out = interp_torch(xn.detach(), table, layout)
+                (gt,) = torch.autograd.grad(out, table, g, create_graph=True)
             return gx, gt, None, None
         g_np = g.contiguous().numpy()
         xn_np = xn.detach().contiguous().numpy()
@@ -208,6 +304,114 @@ class MultilinearFn(torch.autograd.Function):
             gx = torch.from_numpy(gx64).to(xn.dtype)
         if need_t:
             gt = table_grad_numba(xn_np, g_np, layout, tuple(table.shape), table.dtype, ctx.sparse)
+        return gx, gt, None, None
+
+
+def _forward_with_jac(xn_np: np.ndarray, tab_np: np.ndarray, layout: TableLayout
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(out (N,E,F), jac (N,E,F,3), hess (N,E,F,3)) of the fused lookup in the table's dtype: jac = ∂out/∂p̂, hess
+    the mixed second derivatives ∂²out/∂p̂_a∂p̂_b of the pairs (xy, xz, yz)."""
+    N, E, F = xn_np.shape[0], layout.n_entries, tab_np.shape[1]
+    if layout.trilinear:
+        out = np.empty((N, E, F), tab_np.dtype)
+        jac = np.empty((N, E, F, 3), tab_np.dtype)
+        hess = np.empty((N, E, F, 3), tab_np.dtype)
+        trilinear.tri_forward_jac_hess(xn_np, tab_np, *_tri_meta(layout), out, jac, hess)
+    else:
+        out = np.zeros((N, E, F), tab_np.dtype)
+        jac = np.zeros((N, E, F, 3), tab_np.dtype)
+        hess = np.zeros((N, E, F, 3), tab_np.dtype)
+        generic.interp_forward_jac(xn_np, tab_np, *_meta(layout), out, jac, hess)
+    return out, jac, hess
+
+
+def table_grad_jac_numba(xn: np.ndarray, g: np.ndarray, gj: np.ndarray, layout: TableLayout, shape, dtype,
+                         sparse: bool) -> torch.Tensor:
+    """∂L/∂T of ``MultilinearJacFn`` in one scatter: Σ w_c g + Σ_a ∂w_c/∂p̂_a gj_a (sparse unique rows or dense)."""
+    if not sparse:
+        grad = torch.zeros(shape, dtype=dtype)
+        generic.interp_backward_table_jac_dense(xn, g, gj, *_meta(layout), grad.numpy())
+        return grad
+    M, F = shape
+    if layout.trilinear and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
+        acc, mark_off, mark = _accumulator(layout, F, g.dtype)
+        counts = np.zeros(layout.n_entries, np.int64)
+        trilinear.tri_backward_table_jac_acc(xn, _level_major(g, layout), gj, *_tri_meta(layout), mark_off, acc, mark,
+                                             counts)
+        return _sparse_grad(layout, shape, g.dtype, counts,
+                            lambda rows, vals: sparse_rows.drain_marked_rows(layout.rows, layout.row_off, mark_off,
+                                                                             counts, acc, mark, rows, vals))
+    if layout.trilinear:
+        parts = _row_parts(layout)
+        cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], shape[1], g.dtype, parts)
+        counts = np.zeros(layout.n_entries * parts, np.int64)
+        trilinear.tri_backward_table_jac_sparse(xn, g, gj, *_tri_meta(layout), row_slots(layout), parts, PART_LOG2,
+                                                cap_off, out_rows, out_vals, counts)
+    else:
+        cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], shape[1], g.dtype)
+        counts = np.zeros(layout.n_entries, np.int64)
+        generic.interp_backward_table_jac_sparse(xn, g, gj, *_meta(layout), row_slots(layout), cap_off, out_rows,
+                                                 out_vals, counts)
+    return _sparse_grad(layout, shape, g.dtype, counts,
+                        lambda rows, vals: sparse_rows.compact_entries(cap_off, counts, out_rows, out_vals, rows, vals))
+
+
+class MultilinearJacFn(torch.autograd.Function):
+    """Fused lookup with its input Jacobian as a second, differentiable output: (out (N,E,F), J (N,E,F,3)),
+    J[n,e,f,a] = ∂out[n,e,f]/∂p̂_a. The ``create_graph`` input gradient is gx = Σ_{e,f} g J in torch, on the saved J,
+    so its own backward comes back to this node as the gradient gj of J; the plain backward then takes both:
+
+        ∂L/∂p̂_b = Σ_{e,f} g J_b + Σ_{e,f,a≠b} gj_a ∂²out/∂p̂_a∂p̂_b      (cross terms of the interpolation's Hessian,
+                                                                       kept by the forward: no second table read)
+        ∂L/∂T[r_c] = Σ w_c g + Σ_a ∂w_c/∂p̂_a gj_a                         (one scatter, unique rows)
+
+    Same maths as differentiating the reference twice (tests/fields/test_kernels_second_order.py). Third
+    derivatives are not provided (use the torch kernel)."""
+
+    @staticmethod
+    def forward(ctx, xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, sparse: bool):
+        xn_np = xn.detach().contiguous().numpy()
+        out, jac, ctx.hess = _forward_with_jac(xn_np, table.detach().numpy(), layout)
+        jac_t = torch.from_numpy(jac)
+        ctx.save_for_backward(xn, table, jac_t)
+        ctx.layout = layout
+        ctx.sparse = sparse
+        ctx.set_materialize_grads(False)
+        return torch.from_numpy(out), jac_t
+
+    @staticmethod
+    def backward(ctx, g, gj):
+        xn, table, jac = ctx.saved_tensors
+        layout = ctx.layout
+        need_x, need_t = ctx.needs_input_grad[0], ctx.needs_input_grad[1] and not _SCOPES.input_grad_only
+        if torch.is_grad_enabled():  # create_graph: gx on the saved J, whose gradient comes back here as gj
+            if gj is not None or g is None:
+                raise NotImplementedError("third derivatives of the fused lookup are not provided; use "
+                                          "field.kernel=torch")
+            gx = (g.unsqueeze(-1) * jac).sum(dim=(1, 2)) if need_x else None
+            gt = None
+            if need_t:  # a differentiable table gradient: through the reference
+                (gt,) = torch.autograd.grad(interp_torch(xn.detach(), table, layout), table, g, create_graph=True)
+            return gx, gt, None, None
+        if g is None and gj is None:
+            return None, None, None, None
+        xn_np = xn.detach().contiguous().numpy()
+        N, E, F = jac.shape[:3]
+        g_np = g.contiguous().numpy() if g is not None else np.zeros((N, E, F), jac.detach().numpy().dtype)
+        gx = gt = None
+        if need_x:
+            gx64 = np.zeros((N, 3), np.float64)
+            if g is not None:
+                trilinear.tri_backward_x_jac(jac.detach().numpy(), g_np, gx64)
+            if gj is not None:
+                trilinear.hess_backward_x(ctx.hess, gj.contiguous().numpy(), gx64)
+            gx = torch.from_numpy(gx64).to(xn.dtype)
+        if need_t:
+            if gj is None:
+                gt = table_grad_numba(xn_np, g_np, layout, tuple(table.shape), table.dtype, ctx.sparse)
+            else:
+                gt = table_grad_jac_numba(xn_np, g_np, gj.contiguous().numpy(), layout, tuple(table.shape),
+                                          table.dtype, ctx.sparse)
         return gx, gt, None, None
 
 
@@ -246,4 +450,6 @@ def _lookup(xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, backend:
     xn = xn.to(table.dtype)
     if not torch.is_grad_enabled():  # no graph is recorded: don't let the forward prepare an input backward
         xn = xn.detach()
+    elif _SCOPES.second_order and xn.requires_grad:
+        return MultilinearJacFn.apply(xn, table, layout, bool(sparse))[0]
     return MultilinearFn.apply(xn, table, layout, bool(sparse))

@@ -264,6 +264,78 @@ def tri_backward_table_sparse(xn, g, res, scale, offset, lo, hi, stride, hashed,
             slot[out_rows[cb + k]] = -1
 
 
+@njit(inline="always", cache=True)
+def _acc_sparse_jac(slot, out_rows, out_vals, cb, cnt, r, wt, Dx, Dy, Dz, g, gj, n, e, F):
+    """``_acc_sparse`` of the gradient wt·g[n,e] + Dx·gj[n,e,:,0] + Dy·gj[n,e,:,1] + Dz·gj[n,e,:,2]."""
+    if wt == 0.0 and Dx == 0.0 and Dy == 0.0 and Dz == 0.0:  # not touched
+        return cnt
+    s = slot[r]
+    if s < 0:  # first touch: write (out_vals need not be zeroed)
+        slot[r] = cnt
+        out_rows[cb + cnt] = r
+        for f in range(F):
+            out_vals[cb + cnt, f] = wt * g[n, e, f] + Dx * gj[n, e, f, 0] + Dy * gj[n, e, f, 1] + Dz * gj[n, e, f, 2]
+        return cnt + 1
+    for f in range(F):
+        out_vals[cb + s, f] += wt * g[n, e, f] + Dx * gj[n, e, f, 0] + Dy * gj[n, e, f, 1] + Dz * gj[n, e, f, 2]
+    return cnt
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def tri_backward_table_jac_sparse(xn, g, gj, res, scale, offset, lo, hi, stride, hashed, rows, row_off,
+                                  slot, n_parts, part_log2, cap_off, out_rows, out_vals, counts):
+    """``tri_backward_table_sparse`` for the table gradient of a lookup that also output its Jacobian (the second-
+    order backward of ``function.MultilinearJacFn``): corner c of point n gets w_c g[n,e] + Σ_a ∂w_c/∂p̂_a gj[n,e,:,a],
+    ∂w_c/∂p̂_x = du_x/dp̂ s_x t_y t_z (s = ±1 the corner's side, t its per-axis weights) and likewise; a corner is
+    touched when its weight or a derivative weight is non-zero. Same work items, rows and outputs."""
+    N = xn.shape[0]
+    E = res.shape[0]
+    F = out_vals.shape[1]
+    P = n_parts
+    for it in prange(E * P):
+        p = it // E
+        e = balanced_entry(it % E, E)
+        item = p * E + e
+        base = row_off[e]
+        cb = cap_off[item]
+        cnt = 0
+        X, I, R, W = _block_scratch(1)
+        for n0 in range(0, N, _BLOCK):
+            n1 = min(N, n0 + _BLOCK)
+            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, X, I, R, W,
+                       slot, 2 if P == 1 else 0)
+            if P > 1:
+                for j in range(n1 - n0):
+                    for c in range(8):
+                        r = R[0, c, j]
+                        if ((r - base) >> part_log2) % P == p:
+                            prefetch_row_w(slot, r)
+                        else:
+                            R[0, c, j] = -1  # not this item's row
+            for n in range(n0, n1):
+                j = n - n0
+                wx = W[0, 0, j]
+                wy = W[0, 1, j]
+                wz = W[0, 2, j]
+                dx = W[0, 3, j]
+                dy = W[0, 4, j]
+                dz = W[0, 5, j]
+                for c in range(8):
+                    if R[0, c, j] < 0:
+                        continue
+                    tx = wx if c & 1 else 1.0 - wx
+                    ty = wy if (c >> 1) & 1 else 1.0 - wy
+                    tz = wz if c >> 2 else 1.0 - wz
+                    sx = 1.0 if c & 1 else -1.0
+                    sy = 1.0 if (c >> 1) & 1 else -1.0
+                    sz = 1.0 if c >> 2 else -1.0
+                    cnt = _acc_sparse_jac(slot, out_rows, out_vals, cb, cnt, R[0, c, j], tx * ty * tz,
+                                          dx * sx * ty * tz, dy * tx * sy * tz, dz * tx * ty * sz, g, gj, n, e, F)
+        counts[item] = cnt
+        for k in range(cnt):
+            slot[out_rows[cb + k]] = -1
+
+
 @njit(parallel=True, cache=True, fastmath=False)
 def tri_forward(xn, table, res, scale, offset, lo, hi, stride, hashed, rows, row_off, out, jac):
     """Trilinear multi-level lookup: out[n,e,:] = Σ_c w_c T[r_c, :]  ((N,E,F), written, not accumulated).
@@ -321,6 +393,82 @@ def tri_forward(xn, table, res, scale, offset, lo, hi, stride, hashed, rows, row
                                             + wx * wz * (q7 - q5))
                     jac[n, e, f, 2] = dz * (ux * uy * (q4 - q0) + wx * uy * (q5 - q1) + ux * wy * (q6 - q2)
                                             + wx * wy * (q7 - q3))
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def tri_forward_jac_hess(xn, table, res, scale, offset, lo, hi, stride, hashed, rows, row_off, out, jac, hess):
+    """``tri_forward`` with its Jacobian always, and the mixed second derivatives hess[n,e,f,p] = ∂²out[n,e,f]/∂p̂_a∂p̂_b
+    for the pairs p = (xy, xz, yz) ((N,E,F,3); the pure ones are 0, trilinear is linear along each axis):
+    ∂²/∂p̂_x∂p̂_y = du_x/dp̂ du_y/dp̂ ((1−w_z)(T3 − T2 − T1 + T0) + w_z(T7 − T6 − T5 + T4)) and likewise, corners
+    c = x + 2y + 4z."""
+    N = xn.shape[0]
+    E = res.shape[0]
+    F = table.shape[1]
+    nb = (N + _BLOCK - 1) // _BLOCK
+    for b in prange(nb):
+        X, I, R, W = _block_scratch(E)
+        n0 = b * _BLOCK
+        n1 = min(N, n0 + _BLOCK)
+        _tri_block(xn, n0, n1, 0, E, res, scale, offset, lo, hi, stride, hashed, rows, row_off, X, I, R, W, table, 1)
+        for n in range(n0, n1):
+            j = _u(n - n0)
+            for e in range(E):
+                wx = W[e, 0, j]
+                wy = W[e, 1, j]
+                wz = W[e, 2, j]
+                dx = W[e, 3, j]
+                dy = W[e, 4, j]
+                dz = W[e, 5, j]
+                ux = 1.0 - wx
+                uy = 1.0 - wy
+                uz = 1.0 - wz
+                w0, w1, w2, w3, w4, w5, w6, w7 = _tri_weights(wx, wy, wz)
+                for f in range(F):
+                    q0 = np.float64(table[_u(R[e, 0, j]), f])
+                    q1 = np.float64(table[_u(R[e, 1, j]), f])
+                    q2 = np.float64(table[_u(R[e, 2, j]), f])
+                    q3 = np.float64(table[_u(R[e, 3, j]), f])
+                    q4 = np.float64(table[_u(R[e, 4, j]), f])
+                    q5 = np.float64(table[_u(R[e, 5, j]), f])
+                    q6 = np.float64(table[_u(R[e, 6, j]), f])
+                    q7 = np.float64(table[_u(R[e, 7, j]), f])
+                    out[n, e, f] = (w0 * q0 + w1 * q1 + w2 * q2 + w3 * q3 + w4 * q4 + w5 * q5 + w6 * q6 + w7 * q7)
+                    jac[n, e, f, 0] = dx * (uy * uz * (q1 - q0) + wy * uz * (q3 - q2) + uy * wz * (q5 - q4)
+                                            + wy * wz * (q7 - q6))
+                    jac[n, e, f, 1] = dy * (ux * uz * (q2 - q0) + wx * uz * (q3 - q1) + ux * wz * (q6 - q4)
+                                            + wx * wz * (q7 - q5))
+                    jac[n, e, f, 2] = dz * (ux * uy * (q4 - q0) + wx * uy * (q5 - q1) + ux * wy * (q6 - q2)
+                                            + wx * wy * (q7 - q3))
+                    hess[n, e, f, 0] = dx * dy * (uz * (q3 - q2 - q1 + q0) + wz * (q7 - q6 - q5 + q4))
+                    hess[n, e, f, 1] = dx * dz * (uy * (q5 - q4 - q1 + q0) + wy * (q7 - q6 - q3 + q2))
+                    hess[n, e, f, 2] = dy * dz * (ux * (q6 - q4 - q2 + q0) + wx * (q7 - q5 - q3 + q1))
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def hess_backward_x(hess, gj, gx):
+    """gx[n,b] += Σ_e Σ_f Σ_{a≠b} gj[n,e,f,a] · hess[n,e,f,pair(a,b)]: the input gradient through the Jacobian
+    output, hess (N,E,F,3) the mixed second derivatives (xy, xz, yz), gj (N,E,F,3) (gx (N,3) float64, accumulated)."""
+    N = hess.shape[0]
+    E = hess.shape[1]
+    F = hess.shape[2]
+    for n in prange(N):
+        ax = 0.0
+        ay = 0.0
+        az = 0.0
+        for e in range(E):
+            for f in range(F):
+                hxy = np.float64(hess[n, e, f, 0])
+                hxz = np.float64(hess[n, e, f, 1])
+                hyz = np.float64(hess[n, e, f, 2])
+                jx = np.float64(gj[n, e, f, 0])
+                jy = np.float64(gj[n, e, f, 1])
+                jz = np.float64(gj[n, e, f, 2])
+                ax += jy * hxy + jz * hxz
+                ay += jx * hxy + jz * hyz
+                az += jx * hxz + jy * hyz
+        gx[n, 0] += ax
+        gx[n, 1] += ay
+        gx[n, 2] += az
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -399,6 +547,55 @@ def tri_backward_table_acc(xn, gT, res, scale, offset, lo, hi, stride, hashed, r
                     for c in range(8):
                         if w[c] != 0.0:
                             acc[_u(R[0, c, j]), f] += w[c] * gv
+        c = 0
+        for b in range(mo, mo + (rows[e] + 7) // 8):
+            c += BIT_CNT[mark[b]]
+        counts[e] = c
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def tri_backward_table_jac_acc(xn, gT, gj, res, scale, offset, lo, hi, stride, hashed, rows, row_off, mark_off, acc,
+                               mark, counts):
+    """``tri_backward_table_acc`` for the table gradient of a lookup that also output its Jacobian (second-order
+    backward of ``function.MultilinearJacFn``): acc[r_c] += w_c gT[e,n] + Σ_a ∂w_c/∂p̂_a gj[n,e,:,a] (∂w_c/∂p̂_x =
+    du_x/dp̂ s_x t_y t_z, s = ±1 the corner's side, t its per-axis weights, and likewise); a corner is touched (its bit
+    set) when its weight or a derivative weight is non-zero. Same scratch, bitmap and counts."""
+    N = xn.shape[0]
+    E = res.shape[0]
+    F = acc.shape[1]
+    for ie in prange(E):
+        e = balanced_entry(ie, E)
+        base = row_off[e]
+        mo = mark_off[e]
+        X, I, R, W = _block_scratch(1)
+        for n0 in range(0, N, _BLOCK):
+            n1 = min(N, n0 + _BLOCK)
+            _tri_block(xn, n0, n1, e, e + 1, res, scale, offset, lo, hi, stride, hashed, rows, row_off, X, I, R, W,
+                       acc, 2)
+            for n in range(n0, n1):
+                j = _u(n - n0)
+                wx = W[0, 0, j]
+                wy = W[0, 1, j]
+                wz = W[0, 2, j]
+                dx = W[0, 3, j]
+                dy = W[0, 4, j]
+                dz = W[0, 5, j]
+                for c in range(8):
+                    tx = wx if c & 1 else 1.0 - wx
+                    ty = wy if (c >> 1) & 1 else 1.0 - wy
+                    tz = wz if c >> 2 else 1.0 - wz
+                    wt = tx * ty * tz
+                    Dx = dx * (1.0 if c & 1 else -1.0) * ty * tz
+                    Dy = dy * tx * (1.0 if (c >> 1) & 1 else -1.0) * tz
+                    Dz = dz * tx * ty * (1.0 if c >> 2 else -1.0)
+                    if wt == 0.0 and Dx == 0.0 and Dy == 0.0 and Dz == 0.0:
+                        continue
+                    r = R[0, c, j]
+                    k = r - base
+                    mark[_u(mo + (k >> 3))] |= np.uint8(1 << (k & 7))
+                    for f in range(F):
+                        acc[_u(r), f] += (wt * np.float64(gT[e, _u(n), f]) + Dx * np.float64(gj[n, e, f, 0])
+                                          + Dy * np.float64(gj[n, e, f, 1]) + Dz * np.float64(gj[n, e, f, 2]))
         c = 0
         for b in range(mo, mo + (rows[e] + 7) // 8):
             c += BIT_CNT[mark[b]]

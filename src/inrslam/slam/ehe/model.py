@@ -10,7 +10,7 @@ from torch import Tensor, nn
 from inrslam.fields import make_optimizer
 from inrslam.geometry.camera import pixel_directions, world_rays
 from inrslam.geometry.intrinsics import Intrinsics
-from inrslam.rendering import first_crossing
+from inrslam.rendering import surface_depth
 from inrslam.slam.ehe.config import EheConfig
 from inrslam.slam.ehe.field import EheField
 from inrslam.slam.ehe.losses import ehe_losses
@@ -69,9 +69,6 @@ class EheModel(nn.Module):
             o, d = world_rays(c2w, dirs_cam[s:s + chunk])
             out = self.render(o, d, None)
             rgbs.append(out.rgb)
-            if depth == "surface":  # padding repeats the last valid SDF: no crossing there
-                zc, has = first_crossing(out.sdf, out.z)
-                depths.append(torch.where(has, zc, out.depth))
-            else:
-                depths.append(out.depth)
+            # padding repeats the last valid SDF: no crossing there
+            depths.append(surface_depth(out.sdf, out.z, out.depth) if depth == "surface" else out.depth)
         return torch.cat(rgbs).reshape(H, W, 3), torch.cat(depths).reshape(H, W)
