@@ -28,7 +28,7 @@ class StubModel(nn.Module):
         self.renderer = SimpleNamespace(set_progress=lambda p: None)
         self.calls = 0
 
-    def loss(self, c2w, dirs, rgb, depth, generator):
+    def loss(self, c2w, dirs, rgb, depth, generator, behind=None):
         self.calls += 1
         centres = c2w[..., :3, 3].expand(dirs.shape[0], 3)
         tgt = self.targets[depth.long()]

@@ -5,8 +5,20 @@
     build_report("runs/tiny")                      # re-aggregate without running anything
 """
 
-from inrslam.bench.report import build_report
-from inrslam.bench.spec import RunSpec, SweepSpec, expand, load_spec
-from inrslam.bench.sweep import SweepResult, run_sweep
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from inrslam.lazy import lazy_attributes
+
+if TYPE_CHECKING:  # loaded on first use (PEP 562): a sweep worker process needs none of the report's plotting
+    from inrslam.bench.report import build_report
+    from inrslam.bench.spec import RunSpec, SweepSpec, expand, load_spec
+    from inrslam.bench.sweep import SweepResult, run_sweep
+
+_WHERE = {"build_report": "report", "RunSpec": "spec", "SweepSpec": "spec", "expand": "spec", "load_spec": "spec",
+          "SweepResult": "sweep", "run_sweep": "sweep"}
+
+__getattr__ = lazy_attributes(__name__, globals(), _WHERE)
 
 __all__ = ["RunSpec", "SweepResult", "SweepSpec", "build_report", "expand", "load_spec", "run_sweep"]

@@ -55,7 +55,8 @@ RANGES: dict[str, Rule] = {
     "sampling.far_factor": POS, "sampling.band": POS,
     "loss.color": NONNEG, "loss.depth": NONNEG, "loss.free_space": NONNEG, "loss.center": NONNEG,
     "loss.tail": NONNEG, "loss.center_band": between(0.0, 1.0, open_lo=True),
-    "loss.behind": between(0.0, 1.0),
+    "loss.behind": between(0.0, 1.0), "loss.silhouette_behind": between(0.0, 1.0), "loss.silhouette_jump": POS,
+    "loss.silhouette_radius": COUNT,
     # slam
     "slam.init_iters": NONNEG, "slam.init_pixels": COUNT, "slam.track_iters": NONNEG, "slam.track_pixels": COUNT,
     "slam.track_lr": POS, "slam.track_edge": NONNEG, "slam.map_every": COUNT, "slam.map_iters": NONNEG,

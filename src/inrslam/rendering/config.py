@@ -118,5 +118,8 @@ class LossConfig:
     tail: float = 200.0  # lambda_t, weight of the SDF term in the rest of the +-T band
     center_band: float = 0.4  # half-width of the centre band in units of T
     behind: float = 1.0  # the SDF terms reach this far behind the observed depth, units of T (1 = the paper's band)
+    silhouette_behind: float = 1.0  # `behind` for rays at depth silhouettes only (SLAM mapping; 1 = off), units of T
+    silhouette_jump: float = 0.1  # a silhouette pixel: a pixel within `silhouette_radius` is this much farther, metres
+    silhouette_radius: int = 2  # pixels (Chebyshev) searched for the farther neighbour
     free_space_target: float = 1.0  # free-space SDF target, T-units ('loss variant' of docs/spec.md §7.8: 0.1)
     reduction: LossReduction = LossReduction.PER_RAY  # averaging of the SDF terms

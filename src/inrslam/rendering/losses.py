@@ -8,7 +8,8 @@ Per sample i of a ray with depth D (T = truncation, metres; s in T-units; z z-de
     centre              |z - D| < center_band·T         e = z + s·T - D  (Eq. 2)
     tail                |z - D| <= T and not centre     e = z + s·T - D
     (behind, z > D + T: unsupervised; with `behind` = b < 1 already z > D + b·T: a ray grazing an object's silhouette
-    leaves the object soon after its depth, and 'inside' targets a full T behind it widen the object)
+    leaves the object soon after its depth, and 'inside' targets a full T behind it widen the object; a per-ray
+    `behind` tensor lets the caller shorten the band only on such rays, e.g. at depth silhouettes)
 Reduction: `per_ray` = mean of e² over each ray's masked samples, then mean over the rays having such samples
 (Eqs. 3, 5); `global` = mean of e² over every masked sample of the batch (the reference code, docs/spec.md §13.16).
 Empty sets contribute exactly 0 (never NaN).
@@ -58,13 +59,13 @@ def masked_sample_mean(values: Tensor, mask: Tensor, reduction: LossReduction) -
     return per_ray.sum() / (count > 0).sum().clamp_min(1)
 
 
-def sdf_masks(z: Tensor, target_depth: Tensor, truncation: float, center_band: float = 0.4, behind: float = 1.0
-              ) -> tuple[Tensor, Tensor, Tensor]:
+def sdf_masks(z: Tensor, target_depth: Tensor, truncation: float, center_band: float = 0.4,
+              behind: float | Tensor = 1.0) -> tuple[Tensor, Tensor, Tensor]:
     """Per-sample masks (front, centre, tail), all False on rays without depth.
 
     Args:
         z: (R, S) metres; target_depth: (R,) metres (0 = none); truncation: T metres; center_band: in units of T;
-        behind: centre and tail end at z <= D + behind·T (units of T).
+        behind: centre and tail end at z <= D + behind·T (units of T): one value, or (R,) one per ray.
     Returns:
         front z < D - T; centre |z - D| < center_band·T; tail |z - D| <= T and not centre; each (R, S) bool.
     """
@@ -72,14 +73,17 @@ def sdf_masks(z: Tensor, target_depth: Tensor, truncation: float, center_band: f
     valid = d > 0
     diff = z - d
     front = (diff < -truncation) & valid
-    near = valid if behind >= 1.0 else valid & (diff <= behind * truncation)
+    if isinstance(behind, Tensor):
+        near = valid & (diff <= behind[:, None] * truncation)
+    else:
+        near = valid if behind >= 1.0 else valid & (diff <= behind * truncation)
     center = (diff.abs() < center_band * truncation) & near
     tail = (diff.abs() <= truncation) & ~center & near
     return front, center, tail
 
 
 def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, cfg: LossConfig,
-                   truncation: float, sdf_terms: bool = True) -> dict[str, Tensor]:
+                   truncation: float, sdf_terms: bool = True, behind: Tensor | None = None) -> dict[str, Tensor]:
     """All loss terms of a batch of rendered rays (see module docstring for the equations).
 
     Args:
@@ -88,6 +92,7 @@ def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, 
         cfg: weights, masks, reduction; truncation: T, metres.
         sdf_terms: compute the SDF terms (free_space, center, tail). False for renderers that are not SDF-based
             (`renderer.sdf_based`): those terms are then zero tensors (no gradient) and excluded from 'total'.
+        behind: (R,) per-ray end of the SDF band behind the depth, units of T (None: `cfg.behind` for every ray).
     Returns:
         dict with scalar tensors 'color', 'depth', 'free_space', 'center', 'tail' (unweighted) and 'total'
         (weighted sum).
@@ -99,7 +104,8 @@ def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, 
     terms = {"color": color, "depth": depth}
     total = cfg.color * color + cfg.depth * depth
     if sdf_terms:
-        front, center, tail = sdf_masks(out.z, target_depth, truncation, cfg.center_band, cfg.behind)
+        front, center, tail = sdf_masks(out.z, target_depth, truncation, cfg.center_band,
+                                        cfg.behind if behind is None else behind)
         fs_err = (out.sdf - cfg.free_space_target) ** 2
         sdf_err = (out.z + out.sdf * truncation - target_depth[:, None]) ** 2
         terms["free_space"] = masked_sample_mean(fs_err, front, reduction)

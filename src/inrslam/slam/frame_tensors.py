@@ -20,6 +20,17 @@ class FrameTensors:
         self.rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb, dtype=np.float32)).to(device).reshape(-1, 3)
         self.depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32)).to(device).reshape(-1)
         self.device = device
+        self.behind: Tensor | None = None  # (H*W,) per-pixel end of the SDF band, units of T (`set_silhouettes`)
+
+    def set_silhouettes(self, behind: float, jump: float, radius: int) -> None:
+        """Give the silhouette pixels (`silhouettes`) the SDF band end `behind` (units of T), every other pixel 1."""
+        H, W = self.intr.height, self.intr.width
+        sil = silhouettes(self.depth.reshape(H, W), jump, radius).reshape(-1)
+        self.behind = torch.where(sil, torch.full_like(self.depth, behind), torch.ones_like(self.depth))
+
+    def behind_of(self, idx: Tensor) -> Tensor | None:
+        """(n,) band ends of the pixels `idx`, or None when no silhouettes are set."""
+        return None if self.behind is None else self.behind[idx]
 
     def rays(self, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(n,) flat pixel indices -> dirs_cam (n, 3) with z = 1, rgb (n, 3), depth (n,)."""
@@ -29,12 +40,16 @@ class FrameTensors:
 
     def sample(self, n: int, generator: torch.Generator, edge: int = 0) -> tuple[Tensor, Tensor, Tensor]:
         """n distinct pixels uniformly inside an `edge`-pixel border (no border if it would leave none)."""
+        return self.rays(self.sample_index(n, generator, edge))
+
+    def sample_index(self, n: int, generator: torch.Generator, edge: int = 0) -> Tensor:
+        """The (n,) flat pixel indices `sample` draws."""
         H, W = self.intr.height, self.intr.width
         if H - 2 * edge <= 0 or W - 2 * edge <= 0:
             edge = 0
         n = min(n, (H - 2 * edge) * (W - 2 * edge))
         u, v = sample_pixels(H, W, n, edge, generator, self.device)
-        return self.rays(v * W + u)
+        return v * W + u
 
     def edge_pixels(self, jump: float) -> Tensor:
         """Flat indices of the depth-edge pixels: valid depth differing by more than `jump` metres from a valid
@@ -44,9 +59,12 @@ class FrameTensors:
 
     def random_rays(self, n: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
         """n distinct pixels drawn from a full random permutation (the keyframe ray store's choice)."""
+        return self.rays(self.random_index(n, generator))
+
+    def random_index(self, n: int, generator: torch.Generator) -> Tensor:
+        """The (n,) flat pixel indices `random_rays` draws."""
         H, W = self.intr.height, self.intr.width
-        idx = torch.randperm(H * W, generator=generator)[:n].to(self.device)
-        return self.rays(idx)
+        return torch.randperm(H * W, generator=generator)[:n].to(self.device)
 
 
 def depth_edges(depth: Tensor, jump: float) -> Tensor:
@@ -59,3 +77,13 @@ def depth_edges(depth: Tensor, jump: float) -> Tensor:
         edge[a] |= step
         edge[b] |= step
     return edge
+
+
+def silhouettes(depth: Tensor, jump: float, radius: int) -> Tensor:
+    """(H, W) bool: the near side of depth silhouettes — valid depth with a valid pixel at most `radius` pixels away
+    (Chebyshev) whose depth is more than `jump` larger (same unit). A ray there grazes an object and leaves it just
+    behind its depth."""
+    far = torch.where(depth > 0, depth, torch.zeros_like(depth))
+    k = 2 * int(radius) + 1
+    farthest = torch.nn.functional.max_pool2d(far[None, None], k, stride=1, padding=int(radius))[0, 0]
+    return (depth > 0) & (farthest - depth > jump)

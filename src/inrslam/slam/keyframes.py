@@ -16,6 +16,8 @@ class KeyframeStore:
         frame_ids: frame index of each keyframe, in insertion order (slot k = keyframe k).
         dirs: (M', 3) camera-frame ray directions (z = 1); rgb: (M', 3) in [0, 1]; depth: (M',) metres (0 = none);
         slot: (M',) int64 keyframe slot of each ray. Buffers grow by doubling; the first `n_rays` rows are in use.
+        behind: (M',) per-ray end of the SDF band behind the depth (units of T), or None when no keyframe gave one
+            (`loss.silhouette_behind`); a store holds it for all its rays or for none.
     """
 
     device: torch.device
@@ -24,6 +26,7 @@ class KeyframeStore:
     rgb: Tensor  # (M', 3)
     depth: Tensor  # (M',)
     slot: Tensor  # (M',) int64
+    behind: Tensor | None  # (M',) or None
 
     def __init__(self, device: torch.device | str = "cpu"):
         self.device = torch.device(device)
@@ -32,6 +35,7 @@ class KeyframeStore:
         self.rgb = torch.zeros(0, 3, device=self.device)
         self.depth = torch.zeros(0, device=self.device)
         self.slot = torch.zeros(0, dtype=torch.long, device=self.device)
+        self.behind = None
         self._n = 0
 
     def __len__(self) -> int:
@@ -41,17 +45,25 @@ class KeyframeStore:
     def n_rays(self) -> int:
         return self._n
 
-    def add(self, frame_id: int, dirs: Tensor, rgb: Tensor, depth: Tensor) -> None:
+    def add(self, frame_id: int, dirs: Tensor, rgb: Tensor, depth: Tensor, behind: Tensor | None = None) -> None:
         """Append the chosen rays of one keyframe as the next slot: dirs (n, 3) camera frame (z = 1), rgb (n, 3),
-        depth (n,) metres."""
+        depth (n,) metres, behind (n,) band ends in units of T (None: the loss's own; all keyframes or none)."""
         k, n = len(self.frame_ids), dirs.shape[0]
+        if k and (behind is None) != (self.behind is None):
+            raise ValueError("KeyframeStore.add: `behind` must be given for every keyframe or for none")
+        if behind is not None and self.behind is None:
+            self.behind = torch.ones(self.depth.shape[0], device=self.device)
         need = self._n + n
         if need > self.depth.shape[0]:
             cap = max(need, 2 * self.depth.shape[0])
             self.dirs, self.rgb, self.depth, self.slot = (
                 _grow(t, cap) for t in (self.dirs, self.rgb, self.depth, self.slot))
+            if self.behind is not None:
+                self.behind = _grow(self.behind, cap)
         sl = slice(self._n, need)
         self.dirs[sl], self.rgb[sl], self.depth[sl] = dirs.to(self.device), rgb.to(self.device), depth.to(self.device)
+        if behind is not None and self.behind is not None:
+            self.behind[sl] = behind.to(self.device)
         self.slot[sl] = k
         self._n = need
         self.frame_ids.append(int(frame_id))
@@ -62,19 +74,33 @@ class KeyframeStore:
 
         Returns: slot (n,), dirs (n, 3), rgb (n, 3), depth (n,).
         """
+        return self.take(self.sample_index(n, generator))
+
+    def sample_index(self, n: int, generator: torch.Generator) -> Tensor:
+        """The (n,) ray indices `sample` draws."""
         m = self._n
         if m >= 8 * n or n >= m:
             idx = torch.randint(0, m, (n,), generator=generator, device=generator.device)
         else:
             idx = torch.randperm(m, generator=generator, device=generator.device)[:n]
-        idx = idx.to(self.device)
+        return idx.to(self.device)
+
+    def take(self, idx: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Rays `idx` (n,): slot (n,), dirs (n, 3), rgb (n, 3), depth (n,)."""
         return self.slot[idx], self.dirs[idx], self.rgb[idx], self.depth[idx]
+
+    def behind_of(self, idx: Tensor) -> Tensor | None:
+        """(n,) band ends of rays `idx`, or None when the store holds none."""
+        return None if self.behind is None else self.behind[idx]
 
     def state_dict(self) -> dict[str, Any]:
         """The rays in use (on the CPU) and the keyframe frame ids, for checkpoints."""
         m = self._n
-        return {"frame_ids": list(self.frame_ids), "dirs": self.dirs[:m].cpu(), "rgb": self.rgb[:m].cpu(),
-                "depth": self.depth[:m].cpu(), "slot": self.slot[:m].cpu()}
+        state = {"frame_ids": list(self.frame_ids), "dirs": self.dirs[:m].cpu(), "rgb": self.rgb[:m].cpu(),
+                 "depth": self.depth[:m].cpu(), "slot": self.slot[:m].cpu()}
+        if self.behind is not None:
+            state["behind"] = self.behind[:m].cpu()
+        return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore a `state_dict` (moved to this store's device)."""
@@ -83,6 +109,7 @@ class KeyframeStore:
         self.rgb = state["rgb"].to(self.device)
         self.depth = state["depth"].to(self.device)
         self.slot = state["slot"].to(self.device)
+        self.behind = state["behind"].to(self.device) if "behind" in state else None
         self._n = int(self.depth.shape[0])
 
 

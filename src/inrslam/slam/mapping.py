@@ -15,8 +15,9 @@ from inrslam.slam.model import SceneModel
 from inrslam.slam.poses import PoseSet, ray_poses
 
 Optimizers = Mapping[str, torch.optim.Optimizer]  # the scene optimisers of `SceneModel.make_optimizers`
-CurrentRays = Callable[[int], tuple[Tensor, Tensor, Tensor]]  # n -> dirs_cam (n,3), rgb (n,3), depth (n,) metres
-FrameRays = Callable[[int], tuple[Tensor, Tensor, Tensor, Tensor]]  # n -> c2w (4,4), dirs_cam, rgb, depth
+# n -> dirs_cam (n,3), rgb (n,3), depth (n,) metres[, behind (n,) units of T or None]
+CurrentRays = Callable[[int], tuple[Tensor, ...]]
+FrameRays = Callable[[int], tuple[Tensor, ...]]  # n -> c2w (4,4), dirs_cam, rgb, depth[, behind or None]
 
 
 @dataclass
@@ -36,8 +37,8 @@ def map_frame(model: SceneModel, optimizers: Optimizers, store: KeyframeStore, k
     Args:
         model: the scene; optimizers: its scene optimisers (from `make_optimizers`), stepped every iteration.
         store: the keyframe ray store with K >= 1 keyframes; kf_c2w: (K, 4, 4) their current poses (metres).
-        cur_c2w: (4, 4) current frame pose; cur_rays: n -> (dirs_cam (n,3), rgb (n,3), depth (n,)) uniform over the
-            current frame.
+        cur_c2w: (4, 4) current frame pose; cur_rays: n -> (dirs_cam (n,3), rgb (n,3), depth (n,)[, behind (n,)])
+            uniform over the current frame (behind: per-ray SDF band ends, when the store holds them too).
         cfg: mapping settings (`map_iters`, `map_pixels`, `map_current_min`, `bundle_adjust`, `ba_lr`,
             `ba_pose_every`, `pose_param`).
         generator: ray-sampling and jitter generator.
@@ -51,13 +52,15 @@ def map_frame(model: SceneModel, optimizers: Optimizers, store: KeyframeStore, k
     n_cur = max(cfg.map_pixels // K, cfg.map_current_min)
     res = MapResult(kf_c2w.clone(), cur_c2w.clone())
     for it in range(1, cfg.map_iters + 1):
-        slot, dirs_kf, rgb_kf, depth_kf = store.sample(cfg.map_pixels, generator)
-        dirs_c, rgb_c, depth_c = cur_rays(n_cur)
+        idx = store.sample_index(cfg.map_pixels, generator)
+        slot, dirs_kf, rgb_kf, depth_kf = store.take(idx)
+        dirs_c, rgb_c, depth_c, *behind_c = cur_rays(n_cur)
         slots = torch.cat([slot, torch.full((dirs_c.shape[0],), K, dtype=torch.long, device=slot.device)])
         mats = torch.cat([all_c2w[:1], poses.matrices()]) if poses is not None else all_c2w
         c2w = ray_poses(mats, slots)
         losses, out = model.loss(c2w, torch.cat([dirs_kf, dirs_c]), torch.cat([rgb_kf, rgb_c]),
-                                 torch.cat([depth_kf, depth_c]), generator)
+                                 torch.cat([depth_kf, depth_c]), generator,
+                                 behind=_join_behind(store.behind_of(idx), behind_c, depth_kf, depth_c))
         if not optimisation_step(losses["total"], optimizers):
             res.skipped += 1
             continue
@@ -83,8 +86,9 @@ def refit(model: SceneModel, optimizers: Optimizers, store: KeyframeStore, kf_c2
     them): `iters` iterations of `n_pixels` rays drawn over the whole store, poses fixed. Returns the losses."""
     hist: list[float] = []
     for _ in range(iters):
-        slot, dirs, rgb, depth = store.sample(n_pixels, generator)
-        losses, _ = model.loss(ray_poses(kf_c2w, slot), dirs, rgb, depth, generator)
+        idx = store.sample_index(n_pixels, generator)
+        slot, dirs, rgb, depth = store.take(idx)
+        losses, _ = model.loss(ray_poses(kf_c2w, slot), dirs, rgb, depth, generator, behind=store.behind_of(idx))
         if optimisation_step(losses["total"], optimizers):
             hist.append(float(losses["total"].detach()))
     return hist
@@ -96,17 +100,25 @@ def initialise(model: SceneModel, optimizers: Optimizers, frame_rays: FrameRays,
 
     Args:
         model, optimizers: as `map_frame`.
-        frame_rays: n -> (c2w (4,4), dirs_cam (n,3), rgb (n,3), depth (n,) metres).
+        frame_rays: n -> (c2w (4,4), dirs_cam (n,3), rgb (n,3), depth (n,) metres[, behind (n,) or None]).
         generator: sample-jitter generator (None: the global one).
     Returns: the loss of every iteration.
     """
     hist: list[float] = []
     for _ in range(iters):
-        c2w, dirs, rgb, depth = frame_rays(n_pixels)
-        losses, _ = model.loss(c2w, dirs, rgb, depth, generator)
+        c2w, dirs, rgb, depth, *rest = frame_rays(n_pixels)
+        losses, _ = model.loss(c2w, dirs, rgb, depth, generator, behind=rest[0] if rest else None)
         optimisation_step(losses["total"], optimizers)
         hist.append(float(losses["total"].detach()))
     return hist
+
+
+def _join_behind(kf: Tensor | None, cur: list[Tensor], depth_kf: Tensor, depth_c: Tensor) -> Tensor | None:
+    """Per-ray band ends of a keyframe + current batch (`cur`: [] or [(n,)]): None if neither part has them, else 1
+    where one part is missing."""
+    if kf is None and not cur:
+        return None
+    return torch.cat([torch.ones_like(depth_kf) if kf is None else kf, cur[0] if cur else torch.ones_like(depth_c)])
 
 
 def optimisation_step(loss: Tensor, optimizers: Optimizers) -> bool:

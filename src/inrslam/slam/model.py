@@ -78,6 +78,7 @@ class SceneModel(nn.Module):
         rgb: Tensor,
         depth: Tensor,
         generator: torch.Generator | None,
+        behind: Tensor | None = None,
     ) -> tuple[dict[str, Tensor], RenderOutput]:
         """Render rays and compute the loss terms (differentiable in the field, G's parameters and `c2w`).
 
@@ -86,6 +87,7 @@ class SceneModel(nn.Module):
             dirs_cam: (R, 3) camera-frame directions (z = 1).
             rgb: (R, 3) observed colours in [0, 1]; depth: (R,) observed z-depth in metres (0 = none).
             generator: sample-jitter generator (None: the global one).
+            behind: (R,) per-ray end of the SDF band behind the depth, units of T (None: `loss.behind`).
         Returns:
             (loss terms: 0-d tensors, 'total' the weighted sum; the RenderOutput of the R rays)
         """
@@ -95,7 +97,7 @@ class SceneModel(nn.Module):
                               self.truncation, generator)
         out = render_rays(self.field, self.renderer, origins, dirs, z, self.truncation)
         losses = compute_losses(out, rgb, depth, self.cfg.loss, self.truncation,
-                                sdf_terms=getattr(self.renderer, "sdf_based", True))
+                                sdf_terms=getattr(self.renderer, "sdf_based", True), behind=behind)
         return losses, out
 
     # -- held-out rendering (no measured depth) -----------------------------------------------------------

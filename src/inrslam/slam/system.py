@@ -95,6 +95,12 @@ class SlamResult:
     metrics: dict[str, Any]
 
 
+def _with_behind(ft: FrameTensors, idx: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """`ft.rays(idx)` plus the pixels' SDF band ends when the frame has silhouettes set."""
+    behind = ft.behind_of(idx)
+    return ft.rays(idx) if behind is None else ft.rays(idx) + (behind,)
+
+
 class SlamSystem:
     """SLAM on `dataset` with the resolved config `cfg`; `state` holds all that a checkpoint saves.
 
@@ -192,6 +198,9 @@ class SlamSystem:
         smooth = (filtered_depth(frame.depth, cfg.gicp, noise=noise)
                   if noise is not None and (cfg.map_filtered_depth or cfg.photo.enabled) else frame.depth)
         ft = FrameTensors(self._map_frame(frame, smooth), self.device)
+        lc = self.cfg.loss
+        if lc.silhouette_behind < 1.0:  # mapping rays at depth silhouettes: a shorter SDF band behind the depth
+            ft.set_silhouettes(lc.silhouette_behind, lc.silhouette_jump, lc.silhouette_radius)
         self.state.timestamps[i] = frame.timestamp
         self.model.renderer.set_progress(i / max(self.n_frames - 1, 1))  # NeuS cosine annealing, if enabled
         if frame.pose_valid and np.all(np.isfinite(frame.c2w)):
@@ -203,8 +212,8 @@ class SlamSystem:
             self.est[0] = c2w0
             t0 = time.perf_counter()
             hist = initialise(self.model, self.state.optimizers,
-                              lambda n: (c2w0,) + ft.sample(n, self.generator), cfg.init_iters, cfg.init_pixels,
-                              self.generator)
+                              lambda n: (c2w0,) + _with_behind(ft, ft.sample_index(n, self.generator)),
+                              cfg.init_iters, cfg.init_pixels, self.generator)
             self.state.init_ms = (time.perf_counter() - t0) * 1e3
             if hist and math.isfinite(hist[-1]):
                 self.state.track_losses = [hist[-1]]  # seeds the running loss level of lost-tracking detection
@@ -462,7 +471,7 @@ class SlamSystem:
         kf_ids = list(self.store.frame_ids)
         t0 = time.perf_counter()
         res = map_frame(self.model, self.state.optimizers, self.store, self.est[kf_ids], self.est[i],
-                        lambda n: ft.sample(n, self.generator), cfg, self.generator)
+                        lambda n: _with_behind(ft, ft.sample_index(n, self.generator)), cfg, self.generator)
         map_ms = (time.perf_counter() - t0) * 1e3
         self.state.map_ms.append(map_ms)
         fallback = None
@@ -487,14 +496,14 @@ class SlamSystem:
     def _add_keyframe(self, i: int, ft: FrameTensors) -> None:
         cfg = self.cfg.slam
         n = max(1, int(round(cfg.keyframe_fraction * ft.intr.height * ft.intr.width)))
-        dirs, rgb, depth = ft.random_rays(n, self.generator)
+        idx = ft.random_index(n, self.generator)
         if cfg.keyframe_edge_fraction > 0:  # silhouettes: a few percent of the pixels, most of a render's depth error
             edges = ft.edge_pixels(cfg.keyframe_edge_jump)
             m = min(edges.numel(), int(round(cfg.keyframe_edge_fraction * ft.intr.height * ft.intr.width)))
             if m > 0:
-                extra = ft.rays(edges[torch.randperm(edges.numel(), generator=self.generator)[:m].to(edges.device)])
-                dirs, rgb, depth = (torch.cat([a, b]) for a, b in zip((dirs, rgb, depth), extra))
-        self.store.add(i, dirs, rgb, depth)
+                pick = torch.randperm(edges.numel(), generator=self.generator)[:m].to(edges.device)
+                idx = torch.cat([idx, edges[pick]])
+        self.store.add(i, *ft.rays(idx), behind=ft.behind_of(idx))
         if cfg.loop_closure and self.given is None and i > 0:
             t0 = time.perf_counter()
             self._close_loop(i, ft.frame)
