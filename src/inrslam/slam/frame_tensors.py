@@ -32,6 +32,11 @@ class FrameTensors:
         """(n,) band ends of the pixels `idx`, or None when no silhouettes are set."""
         return None if self.behind is None else self.behind[idx]
 
+    def training_rays(self, idx: Tensor) -> tuple[Tensor, ...]:
+        """`rays(idx)`, plus the pixels' band ends (n,) when silhouettes are set: what mapping's losses take."""
+        behind = self.behind_of(idx)
+        return self.rays(idx) if behind is None else self.rays(idx) + (behind,)
+
     def rays(self, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(n,) flat pixel indices -> dirs_cam (n, 3) with z = 1, rgb (n, 3), depth (n,)."""
         W = self.intr.width

@@ -95,12 +95,6 @@ class SlamResult:
     metrics: dict[str, Any]
 
 
-def _with_behind(ft: FrameTensors, idx: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """`ft.rays(idx)` plus the pixels' SDF band ends when the frame has silhouettes set."""
-    behind = ft.behind_of(idx)
-    return ft.rays(idx) if behind is None else ft.rays(idx) + (behind,)
-
-
 class SlamSystem:
     """SLAM on `dataset` with the resolved config `cfg`; `state` holds all that a checkpoint saves.
 
@@ -212,7 +206,7 @@ class SlamSystem:
             self.est[0] = c2w0
             t0 = time.perf_counter()
             hist = initialise(self.model, self.state.optimizers,
-                              lambda n: (c2w0,) + _with_behind(ft, ft.sample_index(n, self.generator)),
+                              lambda n: (c2w0,) + ft.training_rays(ft.sample_index(n, self.generator)),
                               cfg.init_iters, cfg.init_pixels, self.generator)
             self.state.init_ms = (time.perf_counter() - t0) * 1e3
             if hist and math.isfinite(hist[-1]):
@@ -471,7 +465,7 @@ class SlamSystem:
         kf_ids = list(self.store.frame_ids)
         t0 = time.perf_counter()
         res = map_frame(self.model, self.state.optimizers, self.store, self.est[kf_ids], self.est[i],
-                        lambda n: _with_behind(ft, ft.sample_index(n, self.generator)), cfg, self.generator)
+                        lambda n: ft.training_rays(ft.sample_index(n, self.generator)), cfg, self.generator)
         map_ms = (time.perf_counter() - t0) * 1e3
         self.state.map_ms.append(map_ms)
         fallback = None
