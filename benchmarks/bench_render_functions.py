@@ -64,8 +64,9 @@ def main() -> None:
     print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
           f"{torch.__version__}; {args.preset}, {args.data}, {args.frames} frames, init {args.init_iters} iters, "
           f"threads {args.threads or 'all'}, OpenMP wait {inrslam.omp_env.wait_policy()['policy']}")
-    for render in args.renders:  # warm-up: numba compilation, caches
-        run_one(args.preset, args.encodings[0], render, 2, 2, args.data, args.threads)
+    for enc in args.encodings:  # warm-up of every F x G: numba compiles (or loads) each F's kernels on first use,
+        for render in args.renders:  # which would otherwise land in the init time of that F's first render
+            run_one(args.preset, enc, render, 2, 2, args.data, args.threads)
     print(f"{'F':<9} {'G':<26} {'track ms/frame':>15} {'map ms/call':>12} {'s/frame':>8} {'init s':>7} "
           f"{'frame x':>8} {'init x':>7}")
     for enc in args.encodings:

@@ -1,9 +1,11 @@
 """Held-out depth L1 of finished runs with both depth estimators (`eval.heldout_depth`: expected = G's weighted mean,
-surface = the SDF's first zero crossing), against the observed depth and, on the built-in scenes, the noise-free
+surface = the SDF's first zero crossing, searched again where the samples may have stepped over a thin object when
+`eval.heldout_refine` or `--refine` > 0), against the observed depth and, on the built-in scenes, the noise-free
 depth. Re-renders the run's held-out frames (same frames, poses and samples as its evaluation) from its final
 checkpoint (`output.keep_checkpoint`, on by default); the run folder is only read. Never asserted in tests.
 
     python benchmarks/heldout_depth.py runs/acc_room runs/acc_handheld
+    python benchmarks/heldout_depth.py runs/acc_room --refine 0      # the uniform surface search only
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import argparse
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+")
+    ap.add_argument("--refine", type=int, default=None,
+                    help="samples per refined interval of the surface search (default: the run's eval.heldout_refine)")
     args = ap.parse_args()
 
     import torch
@@ -31,9 +35,12 @@ def main() -> None:
         ds = open_dataset(cfg.data)
         cells = {}
         for mode in ("expected", "surface"):
-            def render(c2w, intr, mode=mode, model=run.model, n=cfg.eval.heldout_samples):
+            refine = cfg.eval.heldout_refine if args.refine is None else args.refine
+
+            def render(c2w, intr, mode=mode, model=run.model, n=cfg.eval.heldout_samples, refine=refine):
                 with torch.no_grad():
-                    return model.render_image(torch.as_tensor(c2w, dtype=torch.float32), intr, n_coarse=n, depth=mode)
+                    return model.render_image(torch.as_tensor(c2w, dtype=torch.float32), intr, n_coarse=n, depth=mode,
+                                              refine=refine)
             m = heldout_metrics(render, ds, run.est, cfg.eval.heldout_every, cfg.eval.heldout_max,
                                 offset=cfg.slam.map_every // 2)
             cells[mode] = (m["depth_l1_m"], m.get("depth_l1_true_m"))

@@ -7,9 +7,12 @@ import importlib
 from typing import Any, Callable
 
 
-def lazy_attributes(package: str, namespace: dict[str, Any], where: dict[str, str]) -> Callable[[str], Any]:
-    """A module `__getattr__` for `package`: name -> `getattr(import package.where[name], name)`, cached in
-    `namespace` (the package's globals()); other names raise AttributeError as usual."""
+def lazy_attributes(package: str, namespace: dict[str, Any], sources: dict[str, tuple[str, ...]]
+                    ) -> Callable[[str], Any]:
+    """A module `__getattr__` for `package`, from `sources` (submodule -> the names it defines): name ->
+    `getattr(import package.submodule, name)`, cached in `namespace` (the package's globals()); other names raise
+    AttributeError as usual."""
+    where = {name: module for module, names in sources.items() for name in names}
 
     def __getattr__(name: str) -> Any:
         if name not in where:

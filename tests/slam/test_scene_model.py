@@ -114,3 +114,33 @@ def test_held_out_surface_depth_is_the_zero_crossing_and_nerf_keeps_the_weighted
         assert not torch.equal(surface, expected)
     with pytest.raises(ValueError, match="depth must be"):
         model.render_image(c2w, intr, depth="median")
+
+
+class _BallBeforePlane(_Plane):
+    """A 1.5 cm ball at 0.46 m on the optical axis in front of the plane z = 0.8 m (SDF in truncation units)."""
+
+    def sdf(self, x):
+        ball = (x - torch.tensor([0.0, 0.0, 0.46])).norm(dim=-1) - 0.015
+        return torch.minimum(ball, 0.8 - x[:, 2]) / self.t
+
+
+def test_held_out_refined_surface_search_finds_a_ball_the_uniform_samples_step_over():
+    from inrslam.geometry.intrinsics import Intrinsics
+
+    cfg = load_config(preset="quick", overrides=["field.encoding=dense", "render.name=direct", *TINY])
+    model = SceneModel(cfg, BOUNDS)
+    model.field = _BallBeforePlane(model.truncation)
+    intr = Intrinsics(fx=40.0, fy=40.0, cx=3.5, cy=2.5, width=8, height=6)  # the 4 central rays pass 8 mm off
+    n = 12  # uniform samples ~13 cm apart: none inside the ball (nor the final samples around the plane)
+    _, plain = model.render_image(torch.eye(4), intr, n_coarse=n, depth="surface")
+    _, refined = model.render_image(torch.eye(4), intr, n_coarse=n, depth="surface", refine=8)
+    centre = torch.tensor([[0.0, 0.0, 1.0]])
+    assert model.field.sdf(centre * 0.46).item() < 0  # the ball is there ...
+    assert (plain - 0.8).abs().max().item() < 1e-4  # ... the uniform search sees only the plane ...
+    u = torch.arange(8) - 3.5
+    v = torch.arange(6) - 2.5
+    off = ((u[None, :] / 40) ** 2 + (v[:, None] / 40) ** 2).sqrt() * 0.46  # how far each ray passes from the centre
+    on_ball = off < 0.01
+    assert on_ball.sum() == 4
+    assert (refined[on_ball] - 0.46).abs().max().item() < 0.015 and (refined[on_ball] < 0.46).all()  # ... refined: it
+    torch.testing.assert_close(refined[~on_ball], plain[~on_ball])  # elsewhere the same surface

@@ -34,6 +34,21 @@ def test_silhouettes_mark_the_near_side_within_the_radius():
     assert silhouettes(d, 0.01, 1)[3, 1]  # the 5 cm bump's neighbour is 5 cm nearer: above a 1 cm jump
 
 
+def test_keyframe_edge_pixels_take_both_sides_or_the_near_side_only():
+    from types import SimpleNamespace
+
+    from inrslam.slam.frame_tensors import FrameTensors
+
+    d = torch.full((4, 6), 1.0)
+    d[:, 4:] = 3.0  # edge between columns 3 and 4
+    ft = FrameTensors.__new__(FrameTensors)
+    ft.intr, ft.depth = SimpleNamespace(height=4, width=6), d.reshape(-1)
+    cols = lambda idx: sorted(set((idx % 6).tolist()))  # noqa: E731
+    assert cols(ft.edge_pixels(0.05)) == [3, 4]
+    assert cols(ft.edge_pixels(0.05, near_only=True)) == [3]
+    assert ft.edge_pixels(2.5).numel() == 0
+
+
 def test_per_ray_band_end_matches_the_scalar_one_ray_by_ray():
     g = torch.Generator().manual_seed(0)
     D = torch.rand(6, generator=g) + 1.0

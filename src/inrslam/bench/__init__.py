@@ -16,9 +16,12 @@ if TYPE_CHECKING:  # loaded on first use (PEP 562): a sweep worker process needs
     from inrslam.bench.spec import RunSpec, SweepSpec, expand, load_spec
     from inrslam.bench.sweep import SweepResult, run_sweep
 
-_WHERE = {"build_report": "report", "RunSpec": "spec", "SweepSpec": "spec", "expand": "spec", "load_spec": "spec",
-          "SweepResult": "sweep", "run_sweep": "sweep"}
+_SOURCES = {
+    "report": ("build_report",),
+    "spec": ("RunSpec", "SweepSpec", "expand", "load_spec"),
+    "sweep": ("SweepResult", "run_sweep"),
+}
 
-__getattr__ = lazy_attributes(__name__, globals(), _WHERE)
+__getattr__ = lazy_attributes(__name__, globals(), _SOURCES)
 
 __all__ = ["RunSpec", "SweepResult", "SweepSpec", "build_report", "expand", "load_spec", "run_sweep"]

@@ -94,7 +94,7 @@ RANGES: dict[str, Rule] = {
     "mesh.resolution": at_least(0.001), "mesh.chunk": COUNT,
     "eval.max_time_diff": NONNEG, "eval.rpe_delta": COUNT, "eval.cull_every": COUNT, "eval.cull_eps": NONNEG,
     "eval.n_samples": COUNT, "eval.threshold": POS, "eval.heldout_every": NONNEG, "eval.heldout_max": NONNEG,
-    "eval.heldout_samples": at_least(2),
+    "eval.heldout_samples": at_least(2), "eval.heldout_refine": NONNEG,
     "threads": NONNEG,
     # the EHE mapper (docs/ehe.md)
     "ehe.voxel_size": POS, "ehe.min_points": NONNEG, "ehe.margin": between(0.0, 0.5), "ehe.max_vertices": COUNT,

@@ -24,9 +24,7 @@ _SOURCES = {
     "run": ("eval_mesh_files", "eval_trajectory_files", "evaluate_run", "format_table"),
     "trajectory": ("align_umeyama", "associate", "associate_indices", "ate", "rpe", "select_frames"),
 }
-_WHERE = {name: module for module, names in _SOURCES.items() for name in names}
-
-__getattr__ = lazy_attributes(__name__, globals(), _WHERE)
+__getattr__ = lazy_attributes(__name__, globals(), _SOURCES)
 
 __all__ = [
     "Alignment",

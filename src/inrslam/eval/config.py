@@ -43,6 +43,8 @@ class EvalConfig:
     heldout_every: int = 10  # held-out full-frame renders of every N-th frame (PSNR/SSIM/depth L1; 0 = off)
     heldout_max: int = 20  # at most this many held-out renders
     heldout_samples: int = 96  # uniform samples per ray used to find the surface in held-out renders
+    heldout_refine: int = 0  # > 0: held-out surface search looks again with this many samples inside each of the first
+    # intervals that may hold a thin surface the uniform samples stepped over (0 = off, the paper's search)
     heldout_depth: HeldoutDepth = HeldoutDepth.EXPECTED  # held-out depth: expected (weighted mean) | surface (SDF zero)
 
     @classmethod

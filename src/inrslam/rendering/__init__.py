@@ -4,7 +4,7 @@ Data flow: `sample_depths` -> `render_rays(field, renderer, ...)` (F queried onc
 `composite`) -> `compute_losses`. Any field F works with any renderer G.
 """
 
-from inrslam.rendering.compositing import composite, first_crossing, surface_depth
+from inrslam.rendering.compositing import composite, first_crossing, refine_crossing, surface_depth, surface_intervals
 from inrslam.rendering.config import (
     DensityConfig,
     LossConfig,
@@ -44,7 +44,9 @@ __all__ = [
     "compute_losses",
     "depth_l1",
     "first_crossing",
+    "refine_crossing",
     "surface_depth",
+    "surface_intervals",
     "psnr_from_mse",
     "render_rays",
     "renderer_param_groups",

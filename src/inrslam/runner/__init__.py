@@ -140,7 +140,8 @@ def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
     if ev.enabled and ev.heldout_every:
         # frames between keyframes (offset by half the mapping period), rendered without jitter
         depth = HeldoutDepth(ev.heldout_depth).value  # expected (weighted mean) or surface (SDF zero crossing)
-        render = lambda c2w, intr: system.model.render_image(c2w, intr, n_coarse=ev.heldout_samples, depth=depth)
+        render = lambda c2w, intr: system.model.render_image(c2w, intr, n_coarse=ev.heldout_samples, depth=depth,
+                                                             refine=ev.heldout_refine)
         sink = writer.write_render if system.cfg.output.renders else None
         stage(log, "rendering the held-out frames (full frames, without their depth)")
         with writer.step("held-out renders"):

@@ -91,7 +91,8 @@ class LoadedRun:
         with torch.no_grad():
             rgb, depth = self.model.render_image(torch.as_tensor(c2w, dtype=torch.float32),
                                                  intrinsics or self.intrinsics, n_coarse=n,
-                                                 depth=HeldoutDepth(self.config.eval.heldout_depth).value)
+                                                 depth=HeldoutDepth(self.config.eval.heldout_depth).value,
+                                                 refine=self.config.eval.heldout_refine)
         return rgb.numpy(), depth.numpy()
 
 

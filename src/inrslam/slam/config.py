@@ -175,6 +175,7 @@ class SlamConfig:
     keyframe_fraction: float = 0.05  # fraction of each keyframe's pixels kept for global sampling (Table 3: 0.005)
     keyframe_edge_fraction: float = 0.0  # and up to this fraction of its pixels from depth edges (silhouettes) ...
     keyframe_edge_jump: float = 0.05  # ... pixels whose depth differs from a 4-neighbour's by more, metres
+    keyframe_edge_near_only: bool = False  # ... only the near side of each edge (a pixel whose 8-neighbour is farther)
     max_pose_jump: float = 0.5  # metres; a tracked pose moving more than this from the prediction is rejected
     loop_closure: bool = False  # detect revisits, optimise the keyframe pose graph, re-fit the map (slam.loop)
     loop: LoopConfig = field(default_factory=LoopConfig)  # settings of loop closure

@@ -20,17 +20,28 @@ class FrameTensors:
         self.rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb, dtype=np.float32)).to(device).reshape(-1, 3)
         self.depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32)).to(device).reshape(-1)
         self.device = device
-        self.behind: Tensor | None = None  # (H*W,) per-pixel end of the SDF band, units of T (`set_silhouettes`)
+        self._silhouettes: tuple[float, float, int] | None = None  # `set_silhouettes`' arguments
+        self._behind: Tensor | None = None
 
     def set_silhouettes(self, behind: float, jump: float, radius: int) -> None:
-        """Give the silhouette pixels (`silhouettes`) the SDF band end `behind` (units of T), every other pixel 1."""
-        H, W = self.intr.height, self.intr.width
-        sil = silhouettes(self.depth.reshape(H, W), jump, radius).reshape(-1)
-        self.behind = torch.where(sil, torch.full_like(self.depth, behind), torch.ones_like(self.depth))
+        """Give the silhouette pixels (`silhouettes`) the SDF band end `behind` (units of T), every other pixel 1;
+        computed on first use (a frame that is neither mapped nor kept never pays for it)."""
+        self._silhouettes, self._behind = (behind, jump, radius), None
+
+    @property
+    def behind(self) -> Tensor | None:
+        """(H*W,) per-pixel end of the SDF band, units of T; None when no silhouettes are set."""
+        if self._behind is None and self._silhouettes is not None:
+            behind, jump, radius = self._silhouettes
+            H, W = self.intr.height, self.intr.width
+            sil = silhouettes(self.depth.reshape(H, W), jump, radius).reshape(-1)
+            self._behind = torch.where(sil, torch.full_like(self.depth, behind), torch.ones_like(self.depth))
+        return self._behind
 
     def behind_of(self, idx: Tensor) -> Tensor | None:
         """(n,) band ends of the pixels `idx`, or None when no silhouettes are set."""
-        return None if self.behind is None else self.behind[idx]
+        behind = self.behind
+        return None if behind is None else behind[idx]
 
     def training_rays(self, idx: Tensor) -> tuple[Tensor, ...]:
         """`rays(idx)`, plus the pixels' band ends (n,) when silhouettes are set: what mapping's losses take."""
@@ -56,11 +67,13 @@ class FrameTensors:
         u, v = sample_pixels(H, W, n, edge, generator, self.device)
         return v * W + u
 
-    def edge_pixels(self, jump: float) -> Tensor:
+    def edge_pixels(self, jump: float, near_only: bool = False) -> Tensor:
         """Flat indices of the depth-edge pixels: valid depth differing by more than `jump` metres from a valid
-        4-neighbour (both sides of a silhouette)."""
+        4-neighbour (both sides of a silhouette), or with `near_only` the near side only (`silhouettes`, radius 1)."""
         H, W = self.intr.height, self.intr.width
-        return torch.nonzero(depth_edges(self.depth.reshape(H, W), jump).reshape(-1)).reshape(-1)
+        depth = self.depth.reshape(H, W)
+        edge = silhouettes(depth, jump, 1) if near_only else depth_edges(depth, jump)
+        return torch.nonzero(edge.reshape(-1)).reshape(-1)
 
     def random_rays(self, n: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
         """n distinct pixels drawn from a full random permutation (the keyframe ray store's choice)."""

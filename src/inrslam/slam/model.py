@@ -22,6 +22,7 @@ from inrslam.rendering import (
     build_renderer,
     compute_losses,
     first_crossing,
+    refine_crossing,
     render_rays,
     renderer_param_groups,
     sample_depths,
@@ -103,7 +104,7 @@ class SceneModel(nn.Module):
     # -- held-out rendering (no measured depth) -----------------------------------------------------------
     @torch.no_grad()
     def render_image(self, c2w: Tensor, intr: Intrinsics, n_coarse: int = 96,
-                     chunk: int = 4096, depth: str = "expected") -> tuple[Tensor, Tensor]:
+                     chunk: int = 4096, depth: str = "expected", refine: int = 0) -> tuple[Tensor, Tensor]:
         """Render a full frame *without* the measured depth: coarse uniform samples to the box exit, the first
         + to - SDF crossing then serves as the depth guiding the standard free-space + surface sampling.
 
@@ -113,6 +114,9 @@ class SceneModel(nn.Module):
             depth: "expected" = G's weighted mean depth sum_i w_i z_i; "surface" = the first + to - SDF crossing
                 among the final samples (`first_crossing`), the weighted mean where a ray has none (and for a
                 G that is not SDF-based: nerf).
+            refine: > 0: the surface search looks again, with this many more samples each, inside the first
+                intervals of the uniform samples that may hold a surface (`refine_crossing`: thin objects the
+                uniform samples step over), and "surface" reports that crossing where it finds one.
         Returns: rgb (H, W, 3) in [0, 1], depth (H, W) in metres.
         """
         if depth not in ("expected", "surface"):
@@ -128,22 +132,29 @@ class SceneModel(nn.Module):
         for s in range(0, dirs_all.shape[0], chunk):
             dirs = dirs_all[s:s + chunk]
             origins = c2w[:3, 3].expand_as(dirs)
-            guess = self.surface_guess(origins, dirs, n_coarse)
+            guess, refined = self.surface_guess(origins, dirs, n_coarse, refine)
             z = sample_depths(guess, dirs, origins, self.bounds, no_jitter, self.truncation, None)
             out = render_rays(self.field, self.renderer, origins, dirs, z, self.truncation)
             rgb_out.append(out.rgb)
-            depth_out.append(surface_depth(out.sdf, out.z, out.depth) if surface else out.depth)
+            d = surface_depth(out.sdf, out.z, out.depth) if surface else out.depth
+            depth_out.append(torch.where(refined, guess, d) if surface else d)
         return torch.cat(rgb_out).reshape(H, W, 3), torch.cat(depth_out).reshape(H, W)
 
     @torch.no_grad()
-    def surface_guess(self, origins: Tensor, dirs: Tensor, n: int) -> Tensor:
-        """(R,) z of the first + to - SDF crossing on n uniform samples up to the box exit; 0 where none."""
+    def surface_guess(self, origins: Tensor, dirs: Tensor, n: int, refine: int = 0) -> tuple[Tensor, Tensor]:
+        """(R,) z of the first + to - SDF crossing on n uniform samples up to the box exit (0 where none), and (R,)
+        bool: where `refine` > 0 found it again with `refine_crossing` (then that z; else always False)."""
         zero = torch.zeros(dirs.shape[0], device=dirs.device)
         sampling = _uniform_only(self.cfg.sampling, n)
         z = sample_depths(zero, dirs, origins, self.bounds, sampling, self.truncation, None)
         pts = origins[:, None, :] + z[..., None] * dirs[:, None, :]
         sdf = self.field.sdf(pts.reshape(-1, 3)).reshape(z.shape)
-        return first_crossing(sdf, z)[0]
+        coarse = first_crossing(sdf, z)[0]
+        if refine <= 0:
+            return coarse, torch.zeros_like(coarse, dtype=torch.bool)
+        T = self.truncation
+        zr, found = refine_crossing(lambda p: self.field.sdf(p) * T, origins, dirs, z, sdf * T, refine)
+        return torch.where(found, zr, coarse), found
 
 
 def _uniform_only(sampling_cfg: SamplingConfig, n: int) -> SamplingConfig:

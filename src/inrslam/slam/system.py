@@ -492,7 +492,7 @@ class SlamSystem:
         n = max(1, int(round(cfg.keyframe_fraction * ft.intr.height * ft.intr.width)))
         idx = ft.random_index(n, self.generator)
         if cfg.keyframe_edge_fraction > 0:  # silhouettes: a few percent of the pixels, most of a render's depth error
-            edges = ft.edge_pixels(cfg.keyframe_edge_jump)
+            edges = ft.edge_pixels(cfg.keyframe_edge_jump, near_only=cfg.keyframe_edge_near_only)
             m = min(edges.numel(), int(round(cfg.keyframe_edge_fraction * ft.intr.height * ft.intr.width)))
             if m > 0:
                 pick = torch.randperm(edges.numel(), generator=self.generator)[:m].to(edges.device)

@@ -53,8 +53,9 @@ class EheModel(nn.Module):
 
     @torch.no_grad()
     def render_image(self, c2w: Tensor, intr: Intrinsics, n_coarse: int = 0,
-                     chunk: int = 8192, depth: str = "expected") -> tuple[Tensor, Tensor]:
-        """Full frame without measured depth (samples inside hit voxels need none; `n_coarse` is unused).
+                     chunk: int = 8192, depth: str = "expected", refine: int = 0) -> tuple[Tensor, Tensor]:
+        """Full frame without measured depth (samples inside hit voxels need none; `n_coarse` and `refine` are
+        unused).
         `depth`: "expected" (weighted mean) or "surface" (first + to - SDF crossing of the samples, `first_crossing`;
         the weighted mean where there is none), as `SceneModel.render_image`.
         Returns rgb (H, W, 3) in [0, 1] and depth (H, W) metres (0 where a ray hits no voxel)."""
