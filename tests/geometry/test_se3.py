@@ -70,3 +70,27 @@ def test_opengl_opencv_is_involution_and_flips_axes():
     assert np.allclose(cv[:3, 1], [0, -1, 0]) and np.allclose(cv[:3, 2], [0, 0, -1])
     assert np.allclose(opencv_to_opengl(cv), T)
     assert np.allclose(cv[:3, 3], T[:3, 3])
+
+
+def test_mean_pose_of_symmetric_poses_is_their_centre():
+    axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
+    axis = axis / axis.norm()
+    centre = se3.se3_exp(torch.tensor([0.4, -0.1, 2.0, 0.2, 0.1, -0.3], dtype=torch.float64))
+
+    def offset(sign: float) -> torch.Tensor:  # rotation of sign x 0.2 rad about `axis`, translation sign x t
+        T = torch.eye(4, dtype=torch.float64)
+        T[:3, :3] = se3.so3_exp(sign * 0.2 * axis)
+        T[:3, 3] = sign * torch.tensor([0.01, 0.02, -0.03], dtype=torch.float64)
+        return T
+
+    m = se3.mean_pose(torch.stack([centre @ offset(1.0), centre @ offset(-1.0)]))
+    torch.testing.assert_close(m, centre, atol=1e-12, rtol=0)
+    one = centre @ offset(1.0)
+    torch.testing.assert_close(se3.mean_pose(one[None]), one, atol=1e-12, rtol=0)
+    # rotations about one axis by 0.1, 0.2, 0.6 rad: the chordal mean angle is atan2(sum sin, sum cos)
+    angles = (0.1, 0.2, 0.6)
+    Rs = [se3.se3_exp(torch.cat([torch.zeros(3, dtype=torch.float64), t * axis])) for t in angles]
+    want = math.atan2(sum(math.sin(t) for t in angles), sum(math.cos(t) for t in angles))
+    torch.testing.assert_close(se3.mean_pose(torch.stack(Rs))[:3, :3], se3.so3_exp(want * axis), atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="mean_pose"):
+        se3.mean_pose(torch.zeros(0, 4, 4))

@@ -75,3 +75,28 @@ def test_a_thin_object_in_front_of_a_wall_wins_over_the_wall():
     assert abs(first_crossing(sdf_m, z)[0].item() - 3.0) < 1e-9
     depth, found = refine_crossing(both, o, d, z, sdf_m, 8)
     assert found.item() and abs(depth.item() - 1.488) < 1e-9
+
+
+def test_only_the_candidate_intervals_are_queried():
+    """The field is asked for `n_refine` points per candidate interval and none for padding: rays far from any
+    surface cost nothing."""
+    plane = PlaneField([0.0, 0.0, 1.0], 2.0)
+    o, d = camera_rays(5, 0.2)
+    z = _uniform(o, 0.1, 30, 0.05)
+    pts = o[:, None, :] + z[..., None] * d[:, None, :]
+    sdf_m = _metric(plane)(pts.reshape(-1, 3)).reshape(z.shape)
+    seg = (z[:, 1:] - z[:, :-1]) * d.norm(dim=-1, keepdim=True)
+    _, valid = surface_intervals(sdf_m, seg, 8)
+    queried = []
+
+    def counting(p: torch.Tensor) -> torch.Tensor:
+        queried.append(p.shape[0])
+        return _metric(plane)(p)
+
+    depth, found = refine_crossing(counting, o, d, z, sdf_m, 6)
+    assert 0 < valid.sum().item() < valid.numel() and sum(queried) == 6 * valid.sum().item()
+    assert found.all()
+    far = torch.full_like(sdf_m, 5.0)  # no surface anywhere: nothing queried, nothing found
+    queried.clear()
+    _, found = refine_crossing(counting, o, d, z, far, 6)
+    assert sum(queried) == 0 and not found.any()

@@ -222,3 +222,38 @@ def test_gicp_prior_changes_the_photometric_refinement_only_when_set(noisy, tmp_
     # the prior holds the pose nearer GICP's: a smaller photometric move on every frame, and another trajectory
     assert all(a["photo_shift_mm"] < b["photo_shift_mm"] for a, b in zip(with_prior, without))
     assert (out / "trajectory.txt").read_text() != (noisy / "trajectory.txt").read_text()
+
+
+def test_new_photometric_keyframes_are_placed_by_several_older_ones_when_asked(tmp_path_factory):
+    # a keyframe on every frame (kf_rms_factor < 1); with kf_refs 3 each new one is also aligned onto the two
+    # keyframes before its reference and its pose averaged with them
+    renew = NOISY + ["slam.photo.kf_rms_factor=0.5"]
+    one = tracks(run(tmp_path_factory, "kf_refs1", "accurate", renew))
+    out = run(tmp_path_factory, "kf_refs3", "accurate", renew + ["slam.photo.kf_refs=3"])
+    three = tracks(out)
+    assert all("photo_kf_refs" not in r for r in one)
+    # frame 1's reference is keyframe 0 alone; from frame 2 on older keyframes exist (at most 2 more)
+    assert "photo_kf_refs" in three[0] and three[0]["photo_kf_refs"] == 1
+    assert all(1 <= r["photo_kf_refs"] <= 3 for r in three)
+    averaged = [r for r in three if r["photo_kf_refs"] > 1]
+    assert averaged and all(r["photo_kf_move_mm"] > 0 for r in averaged)
+    assert [r["photo_target"] for r in three] == [r["frame"] - 1 for r in three]
+    _, est = read_tum(out / "trajectory.txt")
+    _, gt = read_tum(out / "trajectory_gt.txt")
+    assert np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1).max() < 0.03  # still tracks (noisy depth)
+
+
+def test_interrupted_run_with_averaged_photometric_keyframes_resumes_exactly(tmp_path_factory, tmp_path):
+    over = SMALL + NOISY + ["slam.photo.kf_rms_factor=0.5", "slam.photo.kf_refs=3"]
+    whole = tmp_path_factory.mktemp("kf_refs_whole") / "run"
+    run_slam(load_config(preset="accurate", overrides=over), whole)
+    out = tmp_path / "interrupted"
+
+    def stop_after_frame_4(i, n, info):
+        if i == 4:
+            raise KeyboardInterrupt  # the older keyframes' pyramids are rebuilt from the dataset
+
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(load_config(preset="accurate", overrides=over), out, progress=stop_after_frame_4)
+    resume_slam(out)
+    assert (out / "trajectory.txt").read_text() == (whole / "trajectory.txt").read_text()

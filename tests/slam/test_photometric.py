@@ -14,6 +14,7 @@ from inrslam.slam.config import PhotoConfig
 from inrslam.slam.photometric import (
     align_photometric,
     build_pyramid,
+    jump_kept,
     photometric_residuals,
     reference_points,
     step_bound,
@@ -117,6 +118,16 @@ def test_step_bound_follows_the_recent_moves_above_its_floor():
     assert step_bound([0.001, 0.002, 0.0015], False, cfg) == 0.01  # synthetic depth: mm moves, the floor holds
     assert step_bound([0.004, 0.005, 0.006], False, cfg) == pytest.approx(0.02)  # real sensors: 4 x the median
     assert step_bound([0.004, 0.005, 0.006], True, cfg) == 0.05  # a weak geometric pose
+
+
+def test_a_move_beyond_the_bound_stands_only_when_the_image_is_explained_as_usual():
+    off = PhotoConfig()  # jump_rms_factor 0: never
+    assert not jump_kept(0.01, 0.02, off)
+    cfg = PhotoConfig(jump_rms_factor=1.5)
+    assert jump_kept(0.02, 0.02, cfg) and jump_kept(0.03, 0.02, cfg)  # up to 1.5 x the keyframe's first RMS
+    assert not jump_kept(0.0301, 0.02, cfg)  # the residual grew: the refinement is the suspect
+    assert not jump_kept(0.01, 0.0, cfg)  # no refinement onto this keyframe yet: no level to compare with
+    assert not jump_kept(float("nan"), 0.02, cfg)
 
 
 def test_a_view_without_gradient_where_the_points_land_is_a_fallback_not_a_crash():

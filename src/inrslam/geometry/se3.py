@@ -104,3 +104,20 @@ def rotation_angle_deg(R: Tensor) -> Tensor:
     """(..., 3, 3) rotation -> (...,) angle in degrees (clamped acos of (tr - 1) / 2)."""
     tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
     return torch.rad2deg(torch.acos(((tr - 1) / 2).clamp(-1.0, 1.0)))
+
+
+def mean_pose(poses: Tensor) -> Tensor:
+    """(N, 4, 4) rigid poses -> (4, 4) their mean: the mean translation, and the rotation nearest (Frobenius) to the
+    mean rotation matrix (the chordal L2 mean, by SVD; for nearby rotations the same as averaging their angles).
+
+    Example: rotations of +a and -a about one axis with translations t and -t -> the identity.
+    """
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or poses.shape[0] == 0:
+        raise ValueError(f"mean_pose: expected (N >= 1, 4, 4) poses, got {tuple(poses.shape)}")
+    U, _, Vh = torch.linalg.svd(poses[:, :3, :3].mean(dim=0))
+    fix = torch.ones(3, dtype=poses.dtype, device=poses.device)
+    fix[2] = torch.sign(torch.linalg.det(U @ Vh))
+    out = torch.eye(4, dtype=poses.dtype, device=poses.device)
+    out[:3, :3] = U @ torch.diag(fix) @ Vh
+    out[:3, 3] = poses[:, :3, 3].mean(dim=0)
+    return out

@@ -29,6 +29,12 @@ def composite(weights: Tensor, rgb: Tensor, z: Tensor) -> tuple[Tensor, Tensor, 
     return out_rgb, depth, opacity, depth_var
 
 
+def _first_sign_change(sdf: Tensor) -> tuple[Tensor, Tensor]:
+    """(R,) index k of the first interval [k, k+1] where (R, S) `sdf` goes from > 0 to <= 0 (0 if none), (R,) has."""
+    cross = (sdf[:, :-1] > 0) & (sdf[:, 1:] <= 0)
+    return torch.argmax(cross.to(torch.int8), dim=1), cross.any(dim=1)
+
+
 def first_crossing(sdf: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
     """z-depth of the first + to - sign change of the SDF along each ray, linearly interpolated between its two
     samples: the surface the ray meets first (the depth an SDF defines, free of the bias of a weighted mean).
@@ -40,9 +46,7 @@ def first_crossing(sdf: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
 
     Example: sdf = [[1, 0.5, -0.5]], z = [[1, 2, 3]] -> depth 2.5, has True.
     """
-    cross = (sdf[:, :-1] > 0) & (sdf[:, 1:] <= 0)
-    has = cross.any(dim=1)
-    k = torch.argmax(cross.to(torch.int8), dim=1)
+    k, has = _first_sign_change(sdf)
     r = torch.arange(z.shape[0], device=z.device)
     s0, s1 = sdf[r, k], sdf[r, k + 1]
     t = s0 / (s0 - s1).clamp_min(1e-8)
@@ -73,7 +77,8 @@ def surface_intervals(sdf_m: Tensor, seg_m: Tensor, count: int, margin: float = 
     R, S = sdf_m.shape
     a, b = sdf_m[:, :-1], sdf_m[:, 1:]
     cross = (a > 0) & (b <= 0)
-    first = torch.where(cross.any(dim=1), torch.argmax(cross.to(torch.int8), dim=1), S)  # S: no crossing
+    k, has = _first_sign_change(sdf_m)
+    first = torch.where(has, k, S)  # S: no crossing
     idx = torch.arange(S - 1, device=sdf_m.device).expand(R, -1)
     near = (a > 0) & (b > 0) & (a + b < margin * seg_m)
     keep = (cross | near) & (idx <= first[:, None])
@@ -101,8 +106,10 @@ def refine_crossing(sdf_fn: Callable[[Tensor], Tensor], origins: Tensor, dirs: T
     z0, z1 = z.gather(1, k), z.gather(1, k + 1)  # (R, m)
     t = torch.arange(1, n_refine + 1, device=z.device, dtype=z.dtype) / (n_refine + 1)
     zi = z0[..., None] + t * (z1 - z0)[..., None]  # (R, m, n) interior samples
-    pts = origins[:, None, None, :] + zi[..., None] * dirs[:, None, None, :]
-    si = sdf_fn(pts.reshape(-1, 3)).reshape(zi.shape)
+    pts = origins[:, None, None, :] + zi[..., None] * dirs[:, None, None, :]  # (R, m, n, 3)
+    si = torch.ones_like(zi)  # padding intervals are not queried: no crossing
+    if valid.any():
+        si[valid] = sdf_fn(pts[valid].reshape(-1, 3)).reshape(-1, n_refine).to(si.dtype)
     zz = torch.cat([z0[..., None], zi, z1[..., None]], dim=-1)  # (R, m, n + 2)
     ss = torch.cat([sdf_m.gather(1, k)[..., None], si, sdf_m.gather(1, k + 1)[..., None]], dim=-1)
     ss = torch.where(valid[..., None], ss, torch.ones_like(ss))  # padding intervals: no crossing

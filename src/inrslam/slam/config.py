@@ -92,9 +92,13 @@ class PhotoConfig:
     jump_window: int = 20  # rejected (real sensors: colour and depth disagree by millimetres on every frame) ...
     weak_degeneracy: float = 0.05  # ... where GICP's degeneracy is below this (a near-degenerate view) or GICP
     weak_max_step: float = 0.05  # failed its checks, the bound is this, metres
+    jump_rms_factor: float = 0.0  # a refinement beyond the bound stands when its residual RMS is at most this x
+    # the first one onto its keyframe (the image is explained as well as usual: GICP is the one off; 0 = off)
     kf_dist: float = 0.3  # a new photometric keyframe after this much motion from it, metres ...
     kf_angle: float = 25.0  # ... or this much rotation, degrees, ...
     kf_rms_factor: float = 0.0  # ... or once the residual RMS exceeds this x the first one onto it (0 = off)
+    kf_refs: int = 1  # a new photometric keyframe's pose: the mean of its alignments onto the last kf_refs
+    # keyframes (1 = only the one it was aligned onto; more shortens the random walk of the keyframe chain)
     affine_light: bool = False  # also fit an affine brightness change (1 + a) I + b of the reference (exposure)
     gicp_prior: float = 0.0  # weight of GICP's pose and Hessian as a prior of the alignment (0 = off; 1 = each
     # residual's own variance; docs/accurate.md)

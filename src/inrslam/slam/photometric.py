@@ -20,6 +20,7 @@ enters through the parallax, so noisy depth hurts it far less than it hurts regi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -212,3 +213,11 @@ def step_bound(recent: list[float], weak: bool, cfg) -> float:
     if weak:
         return cfg.weak_max_step
     return max(cfg.max_step, cfg.jump_factor * float(np.median(recent)) if recent else 0.0)
+
+
+def jump_kept(rms: float, level: float, cfg) -> bool:
+    """Whether a refinement that moved its pose beyond `step_bound` stands anyway: `cfg.jump_rms_factor` > 0 and its
+    residual RMS is at most that factor x `level`, the RMS of the first refinement onto the same keyframe (> 0):
+    the image is explained as well as usual, so the geometric pose is the one that is off. Example: factor 1.5,
+    level 0.02 -> kept up to RMS 0.03; never with level 0 (no refinement onto this keyframe yet)."""
+    return cfg.jump_rms_factor > 0 and level > 0 and math.isfinite(rms) and rms <= cfg.jump_rms_factor * level

@@ -17,6 +17,7 @@ import trimesh
 from inrslam.data.frame import Frame, RGBDDataset
 from inrslam.data.given_poses import GivenPoses, load_given_poses
 from inrslam.errors import ConfigError, DataError, TrackingLost
+from inrslam.geometry.se3 import mean_pose
 from inrslam.slam.config import GicpConfig, GicpTarget, MeshConfig, PoseInit, SlamConfig
 from inrslam.slam.frame_tensors import FrameTensors
 from inrslam.slam.keyframes import KeyframeStore
@@ -32,7 +33,7 @@ from inrslam.slam.loop_closure import (
 from inrslam.slam.mapping import initialise, map_frame, refit
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import ModelConfig, SceneModel
-from inrslam.slam.photometric import PhotoLevel, align_photometric, build_pyramid, step_bound
+from inrslam.slam.photometric import PhotoLevel, align_photometric, build_pyramid, jump_kept, step_bound
 from inrslam.slam.poses import constant_velocity, relative_trajectory
 from inrslam.slam.registration import (
     PreparedCloud,
@@ -129,8 +130,9 @@ class SlamSystem:
         self._target_cloud: tuple[int, PreparedCloud] | None = None
         self._local_target: tuple[tuple[int, ...], PreparedCloud] | None = None
         self._kf_points: dict[int, np.ndarray] = {}
-        # the photometric reference (frame index, pyramid), in memory only (rebuilt from the dataset after a resume)
-        self._photo_ref: tuple[int, list[PhotoLevel]] | None = None
+        # pyramids of the last slam.photo.kf_refs photometric keyframes, in memory only (rebuilt from the dataset
+        # after a resume)
+        self._photo_pyrs: dict[int, list[PhotoLevel]] = {}
         self._gicp_information: np.ndarray | None = None  # the current frame's GICP information (`pose_information`)
 
     def _make_model(self) -> SceneModel:
@@ -247,11 +249,11 @@ class SlamSystem:
                 c2w, loss, fallback, iters = res.c2w, res.best_loss, res.fallback, res.iters
             else:  # geometric tracking only
                 c2w, loss, fallback, iters = pred, float("nan"), None, 0
-        track_ms = (time.perf_counter() - t0) * 1e3
-        self.state.track_ms.append(track_ms)
         self._set_pose(i, c2w)
         if cur_pyr is not None:
-            self._renew_photo_keyframe(i, cur_pyr, "photo_fallback" in extra, extra.get("photo_rms"))
+            self._renew_photo_keyframe(i, cur_pyr, "photo_fallback" in extra, extra)
+        track_ms = (time.perf_counter() - t0) * 1e3
+        self.state.track_ms.append(track_ms)
         fallback = _joined(extra.pop("init_fallback", None), extra.pop("photo_fallback", None),
                            extra.pop("sdf_fallback", None), fallback)
         rec = {"type": "track", "frame": i, "loss": loss, "track_ms": track_ms, "iters": iters, **extra}
@@ -381,23 +383,25 @@ class SlamSystem:
         succeeds, `rec["photo_rescued"]` says the photometric pose stands."""
         pc = self.cfg.slam.photo
         k = self.state.photo_kfs[-1]
-        if self._photo_ref is None or self._photo_ref[0] != k:  # after a resume
-            self._photo_ref = (k, self._pyramid(self.dataset[k]))
         cur = self._pyramid(frame, smooth)
         T_k = self.est[k].double().cpu()
         T_ik = torch.linalg.inv(pred.double().cpu()) @ T_k
         prior = None
         if pc.gicp_prior > 0 and "init_fallback" not in rec and self._gicp_information is not None:
             prior = (T_ik.clone(), torch.as_tensor(self._gicp_information), pc.gicp_prior)  # T_ik is GICP's here
-        res = align_photometric(self._photo_ref[1], cur, T_ik, pc, torch.Generator().manual_seed(self.cfg.seed + i),
+        res = align_photometric(self._photo_pyramid(k), cur, T_ik, pc, torch.Generator().manual_seed(self.cfg.seed + i),
                                 prior)
         c2w = T_k @ torch.linalg.inv(res.T_ik)
         fallback = res.fallback
         shift = float(torch.linalg.norm(c2w[:3, 3] - pred[:3, 3].double().cpu()))
         weak = "init_fallback" in rec or rec.get("gicp_degeneracy", 0.0) < pc.weak_degeneracy
-        if fallback is None and shift > step_bound(self.state.photo_shifts, weak, pc):
-            fallback = "photo_jump"
-        if fallback is None:
+        within = not shift > step_bound(self.state.photo_shifts, weak, pc)  # (a NaN shift counts as within)
+        if fallback is None and not within:
+            if jump_kept(res.rms, self.state.photo_kf_rms, pc):
+                rec["photo_jump_kept"] = True  # beyond the bound, but the image is explained as well as usual
+            else:
+                fallback = "photo_jump"
+        if fallback is None and within:
             self.state.photo_shifts = (self.state.photo_shifts + [shift])[-pc.jump_window:]
         rec.update(photo_iters=res.iters, photo_points=res.n_points, photo_target=k,
                    photo_rms=round(res.rms, 5) if math.isfinite(res.rms) else None,
@@ -411,22 +415,59 @@ class SlamSystem:
             rec["photo_rescued"] = True
         return c2w.to(dtype=pred.dtype, device=pred.device), cur
 
-    def _renew_photo_keyframe(self, i: int, pyramid: list[PhotoLevel], failed: bool, rms: float | None) -> None:
+    def _photo_pyramid(self, k: int) -> list[PhotoLevel]:
+        """Photometric pyramid of keyframe k: kept from when it became one, or rebuilt (after a resume)."""
+        if k not in self._photo_pyrs:
+            self._photo_pyrs[k] = self._pyramid(self.dataset[k])
+        return self._photo_pyrs[k]
+
+    def _renew_photo_keyframe(self, i: int, pyramid: list[PhotoLevel], failed: bool, rec: dict) -> None:
         """Frame i becomes the photometric reference once it has moved `kf_dist` / turned `kf_angle` from the
-        current one, its residual RMS `rms` exceeds `kf_rms_factor` x the first one onto the current reference (the
-        reference no longer explains the view), or when the alignment onto it failed."""
+        current one, its residual RMS `rec["photo_rms"]` exceeds `kf_rms_factor` x the first one onto the current
+        reference (the reference no longer explains the view), or when the alignment onto it failed. With
+        `kf_refs` > 1 a new keyframe's pose is first averaged with its alignments onto older keyframes."""
         pc = self.cfg.slam.photo
         s = self.state
         k = s.photo_kfs[-1]
+        rms = rec.get("photo_rms")
         if not failed and rms is not None and rms > 0 and s.photo_kf_rms <= 0:
             s.photo_kf_rms = float(rms)  # the first refinement onto this reference sets its level
         grown = pc.kf_rms_factor > 0 and not failed and rms is not None and s.photo_kf_rms > 0 \
             and rms > pc.kf_rms_factor * s.photo_kf_rms
         from_kf = (torch.linalg.inv(self.est[k].double()) @ self.est[i].double()).cpu().numpy()
         if failed or grown or moved_beyond(from_kf, pc.kf_dist, pc.kf_angle):
+            if pc.kf_refs > 1 and not failed:
+                self._average_keyframe_pose(i, pyramid, rec)
             s.photo_kfs.append(i)
             s.photo_kf_rms = 0.0
-            self._photo_ref = (i, pyramid)
+            self._photo_pyrs[i] = pyramid
+            keep = set(s.photo_kfs[-pc.kf_refs:])
+            self._photo_pyrs = {j: p for j, p in self._photo_pyrs.items() if j in keep}
+
+    def _average_keyframe_pose(self, i: int, pyramid: list[PhotoLevel], rec: dict) -> None:
+        """Frame i, about to become a photometric keyframe, is aligned onto the `kf_refs` - 1 keyframes before its
+        reference too (from its pose); its pose becomes the mean (`mean_pose`) of the accepted ones (no fallback,
+        a move within `step_bound`) and its own. Each keyframe is then placed by several older ones, not by the last
+        link of the chain only: the chain's error grows more slowly. Logs `photo_kf_refs` (poses averaged) and
+        `photo_kf_move_mm`."""
+        pc = self.cfg.slam.photo
+        s = self.state
+        T_i = self.est[i].double().cpu()
+        poses = [T_i]
+        for j, k in enumerate(s.photo_kfs[-pc.kf_refs:-1]):
+            T_k = self.est[k].double().cpu()
+            gen = torch.Generator().manual_seed(self.cfg.seed + i + 100_003 * (j + 1))
+            res = align_photometric(self._photo_pyramid(k), pyramid, torch.linalg.inv(T_i) @ T_k, pc, gen)
+            if res.fallback is not None:
+                continue
+            c2w = T_k @ torch.linalg.inv(res.T_ik)
+            if float(torch.linalg.norm(c2w[:3, 3] - T_i[:3, 3])) <= step_bound(s.photo_shifts, False, pc):
+                poses.append(c2w)
+        rec["photo_kf_refs"] = len(poses)
+        if len(poses) > 1:
+            T = mean_pose(torch.stack(poses))
+            rec["photo_kf_move_mm"] = round(float(torch.linalg.norm(T[:3, 3] - T_i[:3, 3])) * 1e3, 3)
+            self._set_pose(i, T.to(dtype=self.est.dtype, device=self.est.device))
 
     def _local_map(self, g: GicpConfig) -> PreparedCloud:
         """World-frame cloud of the last `g.local_map_keyframes` GICP keyframes at their current poses (cached)."""
