@@ -98,7 +98,7 @@ class PhotoConfig:
     kf_angle: float = 25.0  # ... or this much rotation, degrees, ...
     kf_rms_factor: float = 0.0  # ... or once the residual RMS exceeds this x the first one onto it (0 = off)
     kf_refs: int = 1  # a new photometric keyframe's pose: the mean of its alignments onto the last kf_refs
-    # keyframes (1 = only the one it was aligned onto; more shortens the random walk of the keyframe chain)
+    # keyframes (1 = only the one it was aligned onto; more: off in every preset, docs/accurate.md)
     affine_light: bool = False  # also fit an affine brightness change (1 + a) I + b of the reference (exposure)
     gicp_prior: float = 0.0  # weight of GICP's pose and Hessian as a prior of the alignment (0 = off; 1 = each
     # residual's own variance; docs/accurate.md)

@@ -447,9 +447,9 @@ class SlamSystem:
     def _average_keyframe_pose(self, i: int, pyramid: list[PhotoLevel], rec: dict) -> None:
         """Frame i, about to become a photometric keyframe, is aligned onto the `kf_refs` - 1 keyframes before its
         reference too (from its pose); its pose becomes the mean (`mean_pose`) of the accepted ones (no fallback,
-        a move within `step_bound`) and its own. Each keyframe is then placed by several older ones, not by the last
-        link of the chain only: the chain's error grows more slowly. Logs `photo_kf_refs` (poses averaged) and
-        `photo_kf_move_mm`."""
+        a move within `step_bound`) and its own: each keyframe placed by several older ones, not by the last link of
+        the chain only (meant to slow the chain's random walk; on 7-Scenes it did not, docs/accurate.md). Logs
+        `photo_kf_refs` (poses averaged) and `photo_kf_move_mm`."""
         pc = self.cfg.slam.photo
         s = self.state
         T_i = self.est[i].double().cpu()
