@@ -106,10 +106,11 @@ def refine_crossing(sdf_fn: Callable[[Tensor], Tensor], origins: Tensor, dirs: T
     z0, z1 = z.gather(1, k), z.gather(1, k + 1)  # (R, m)
     t = torch.arange(1, n_refine + 1, device=z.device, dtype=z.dtype) / (n_refine + 1)
     zi = z0[..., None] + t * (z1 - z0)[..., None]  # (R, m, n) interior samples
-    pts = origins[:, None, None, :] + zi[..., None] * dirs[:, None, None, :]  # (R, m, n, 3)
-    si = torch.ones_like(zi)  # padding intervals are not queried: no crossing
+    si = torch.ones_like(zi)  # padding intervals are neither placed nor queried: no crossing
     if valid.any():
-        si[valid] = sdf_fn(pts[valid].reshape(-1, 3)).reshape(-1, n_refine).to(si.dtype)
+        rows = valid.nonzero()[:, 0]  # the ray of each candidate interval
+        pts = origins[rows, None, :] + zi[valid][..., None] * dirs[rows, None, :]  # (V, n, 3)
+        si[valid] = sdf_fn(pts.reshape(-1, 3)).reshape(-1, n_refine).to(si.dtype)
     zz = torch.cat([z0[..., None], zi, z1[..., None]], dim=-1)  # (R, m, n + 2)
     ss = torch.cat([sdf_m.gather(1, k)[..., None], si, sdf_m.gather(1, k + 1)[..., None]], dim=-1)
     ss = torch.where(valid[..., None], ss, torch.ones_like(ss))  # padding intervals: no crossing
