@@ -7,7 +7,8 @@ is itself a tracker's output (7-Scenes: KinectFusion) it is usually the ground t
     python benchmarks/gt_consistency.py --data ../shared/data/7scenes_redkitchen --dataset 7scenes
     python benchmarks/gt_consistency.py --data builtin:room     # synthetic: exact poses, sub-millimetre
 
-Prints the median and 90th percentile of the disagreement, the frames where it is largest, and the ATE that a
+Prints the median and 90th percentile of the disagreement, the frames where it is largest, the frames whose colour or
+depth repeats the previous frame's (`slam.photo.skip_stale`), and the ATE that a
 trajectory equal to the ground truth but for the largest disagreement (a step at that frame) would score: what
 such a ground-truth error alone costs an estimate that does not follow it.
 """
@@ -28,6 +29,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from inrslam.config import load_config
+    from inrslam.data.frame import repeated_streams
     from inrslam.datasets import open_dataset
     from inrslam.eval.trajectory import ate
     from inrslam.slam.config import GicpConfig
@@ -38,6 +40,7 @@ def main() -> None:
     ds = open_dataset(cfg.data)
     g = GicpConfig(max_corr=0.05, downsample=0.01, pixel_stride=1)
     prev, prev_cloud = None, None
+    repeated: dict[str, list[int]] = {"colour": [], "depth": [], "both": []}  # frames repeating frame i-1's image
     rows = []  # (frame, gt move mm, disagreement mm, disagreement deg, ok)
     gt = []
     for i in range(len(ds)):
@@ -45,6 +48,9 @@ def main() -> None:
         gt.append(f.c2w)
         cloud = PreparedCloud(depth_points(f.depth, f.intrinsics, g), g)
         if prev is not None:
+            same = repeated_streams(prev, f)
+            if same:
+                repeated[same].append(i)
             rel_gt = np.linalg.inv(prev.c2w) @ f.c2w  # frame i -> frame i-1
             reg = register(prev_cloud, cloud, rel_gt, g)
             diff = np.linalg.inv(rel_gt) @ reg.T_target_source
@@ -59,6 +65,10 @@ def main() -> None:
     print("largest disagreements (frame: gt move mm, disagreement mm / deg):")
     for i, move, dm, dd, _ in sorted(ok, key=lambda r: -r[2])[:args.top]:
         print(f"  {i:5d}: {move:6.1f}  {dm:6.1f} / {dd:.2f}")
+    print("frames whose colour / depth / both are bit-identical to the previous frame's (a dropped sensor frame "
+          "repeated: colour and depth of different times):")
+    for k, v in repeated.items():
+        print(f"  {k}: {len(v)}" + (f" (first {v[:12]})" if v else ""))
     worst = max(ok, key=lambda r: r[2])
     # a trajectory equal to the ground truth except that it does not make the worst frame's disputed step
     reg_step = None

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from data_layouts import H, W, green, make_7scenes, make_neuralrgbd, make_replica, make_scannet, make_tum
+from data_layouts import H, W, green, make_7scenes, make_neuralrgbd, make_replica, make_scannet, make_tum, write_rgb
 
 from inrslam.data import DATASETS, DataConfig, Frame, RGBDDataset, open_folder
 from inrslam.data.config import NeuralRgbdConfig, SevenScenesConfig, TumConfig
 from inrslam.data.neuralrgbd import FOCAL
-from inrslam.errors import DataError
+from inrslam.errors import ConfigError, DataError
 
 JPEG_TOL = 3 / 255
 
@@ -168,3 +168,39 @@ def test_frames_are_read_lazily(tmp_path):
     assert ds[0].rgb.shape == (H, W, 3) and ds[1].depth.shape == (H, W)
     with pytest.raises(DataError, match="frame-000002.color.png"):
         ds[2]
+
+
+def test_7scenes_colour_is_resampled_into_the_depth_camera_when_its_intrinsics_are_given(tmp_path):
+    lay = make_7scenes(tmp_path, n=2)  # depth camera fx = fy = 30.5, (cx, cy) = (16.25, 12.5), 32 x 24
+    img = np.zeros((H, W, 3), dtype=np.uint8)
+    img[:, :, 0] = (np.arange(W) * 8)[None, :]  # red rises along columns, green along rows
+    img[:, :, 1] = (np.arange(H) * 10)[:, None]
+    write_rgb(lay.root / "seq-01" / "frame-000001.color.png", img)
+    plain = open_folder(lay.root)[1]
+    ds = open_folder(lay.root, DataConfig(color_intrinsics=[20.0, 20.0, 15.5, 11.5]))
+    f = ds[1]
+    assert f.rgb.shape == plain.rgb.shape and f.intrinsics == plain.intrinsics and np.array_equal(f.depth, plain.depth)
+    u = 15.5 + (np.arange(W) - 16.25) * 20.0 / 30.5  # the colour column each depth pixel looks at
+    v = 11.5 + (np.arange(H) - 12.5) * 20.0 / 30.5
+    np.testing.assert_allclose(f.rgb[5, :, 0], u * 8 / 255, atol=1e-5)
+    np.testing.assert_allclose(f.rgb[:, 5, 1], v * 10 / 255, atol=1e-5)
+    with pytest.raises(ConfigError, match="data.color_intrinsics"):
+        open_folder(lay.root, DataConfig(color_intrinsics=[20.0, 20.0, 15.5]))
+    with pytest.raises(DataError, match="data.color_intrinsics"):
+        open_folder(lay.root, DataConfig(color_intrinsics=[0.0, 20.0, 15.5, 11.5]))
+
+
+def test_repeated_streams_names_what_repeats_bit_for_bit(tmp_path):
+    import dataclasses
+
+    from inrslam.data.frame import repeated_streams
+
+    ds = open_folder(make_7scenes(tmp_path, n=2).root)
+    a, b = ds[0], ds[1]
+    assert repeated_streams(a, b) is None
+    assert repeated_streams(a, dataclasses.replace(b, rgb=a.rgb.copy())) == "colour"
+    assert repeated_streams(a, dataclasses.replace(b, depth=a.depth.copy())) == "depth"
+    assert repeated_streams(a, dataclasses.replace(a, index=1)) == "both"
+    nudged = a.depth.copy()
+    nudged[5, 5] += 1e-6  # one pixel differs: a new image
+    assert repeated_streams(a, dataclasses.replace(a, depth=nudged)) == "colour"

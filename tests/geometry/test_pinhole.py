@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
+from inrslam.errors import DataError
 from inrslam.geometry.camera import pixel_directions
-from inrslam.geometry.intrinsics import Intrinsics
+from inrslam.geometry.intrinsics import Intrinsics, reproject_image
 from inrslam.geometry.pinhole import backproject_np, image_directions_np, pixel_directions_np, project_np
 
 INTR = Intrinsics(fx=100.0, fy=120.0, cx=31.5, cy=23.5, width=64, height=48)
@@ -40,3 +42,25 @@ def test_numpy_and_torch_directions_agree():
     assert np.allclose(d_np, d_t)
     grid = image_directions_np(*P, INTR.width, INTR.height)
     assert grid.shape == (64 * 48, 3) and np.allclose(grid[INTR.width + 2], pixel_directions_np(*P, [2], [1])[0])
+
+
+def test_reproject_image_samples_the_source_camera_at_the_scaled_coordinates():
+    rng = np.random.default_rng()
+    src = Intrinsics(*rng.uniform(40, 50, 2), rng.uniform(30, 34), rng.uniform(22, 26), 64, 48)  # a wider camera ...
+    dst = Intrinsics(*rng.uniform(62, 70, 2), 32.0, 24.0, 64, 48)  # ... seen by a narrower depth camera
+    a, b, c = rng.normal(size=3)
+    U, V = np.meshgrid(np.arange(64.0), np.arange(48.0))
+    image = np.stack([a * U + b * V, c * U * V], axis=-1)  # bilinear in (u, v): interpolated exactly
+    out = reproject_image(image, src, dst)
+    u = src.cx + (np.arange(64) - dst.cx) * src.fx / dst.fx  # where each result column looks in the source
+    v = src.cy + (np.arange(48) - dst.cy) * src.fy / dst.fy
+    np.testing.assert_allclose(out[..., 0], a * u[None, :] + b * v[:, None], atol=1e-9)
+    np.testing.assert_allclose(out[..., 1], c * np.outer(v, u), atol=1e-9)
+    # a 3-D point seen at result pixel (ud, vd) has there the value of its source pixel (us, vs)
+    ud, vd = 50, 7
+    X = np.array([(ud - dst.cx) / dst.fx, (vd - dst.cy) / dst.fy, 1.0]) * 2.5
+    us, vs = src.fx * X[0] / X[2] + src.cx, src.fy * X[1] / X[2] + src.cy
+    assert out[vd, ud, 0] == pytest.approx(a * us + b * vs, abs=1e-9)
+    assert np.array_equal(reproject_image(image, src, src), image)  # the same camera: unchanged
+    with pytest.raises(DataError, match="64x48"):
+        reproject_image(image[:10], src, dst)

@@ -257,3 +257,52 @@ def test_interrupted_run_with_averaged_photometric_keyframes_resumes_exactly(tmp
         run_slam(load_config(preset="accurate", overrides=over), out, progress=stop_after_frame_4)
     resume_slam(out)
     assert (out / "trajectory.txt").read_text() == (whole / "trajectory.txt").read_text()
+
+
+class _DroppedFrames:
+    """A dataset whose recorder repeated dropped frames: frame 3's colour is frame 2's, frame 5's depth frame 4's."""
+
+    def __init__(self, base):
+        self.base = base
+
+    def __getattr__(self, name):
+        return getattr(self.base, name)
+
+    def __len__(self):
+        return len(self.base)
+
+    def __getitem__(self, i):
+        import dataclasses
+
+        f = self.base[i]
+        if i == 3:
+            return dataclasses.replace(f, rgb=self.base[2].rgb.copy())
+        if i == 5:
+            return dataclasses.replace(f, depth=self.base[4].depth.copy())
+        return f
+
+
+def test_frames_with_a_repeated_colour_or_depth_are_not_refined_photometrically_when_asked():
+    from inrslam.datasets import open_dataset
+    from inrslam.slam.system import SlamSystem
+
+    def track_records(skip: bool, forget_at: int | None = None) -> list[dict]:
+        # every refined frame becomes the photometric keyframe (kf_rms_factor < 1)
+        over = ["data.max_frames=7", "slam.photo.kf_rms_factor=0.5", f"slam.photo.skip_stale={str(skip).lower()}"]
+        cfg = load_config(preset="accurate", overrides=SMALL + NOISY + over)
+        system = SlamSystem(cfg, _DroppedFrames(open_dataset(cfg.data)))
+        recs = []
+        for i in range(7):
+            if i == forget_at:
+                system._prev_frame = None  # as after a resume: frame i-1 is read again
+            recs += [{k: v for k, v in r.items() if k != "track_ms"} for r in system.process(i) if r["type"] == "track"]
+        return recs + [system.state.est.tolist()]
+
+    on = track_records(True)
+    on, poses = on[:-1], on[-1]
+    assert [r.get("stale") for r in on] == [None, None, "colour", None, "depth", None]
+    assert all(("photo_iters" in r) == ("stale" not in r) for r in on)  # GICP's pose stands on a stale frame ...
+    assert [r.get("photo_target") for r in on] == [0, 1, None, 2, None, 4]  # ... which never becomes a reference
+    assert json.dumps(track_records(True, forget_at=5)) == json.dumps(on + [poses])  # (NaN losses)
+    off = track_records(False)[:-1]
+    assert all("stale" not in r for r in off) and [r["photo_target"] for r in off] == [0, 1, 2, 3, 4, 5]

@@ -15,6 +15,7 @@ from inrslam.data.config import DataConfig
 from inrslam.data.frame import Frame, Intrinsics
 from inrslam.data.images import image_size, read_depth, read_rgb
 from inrslam.errors import ConfigError, DataError
+from inrslam.geometry.intrinsics import reproject_image
 
 
 def numbered_files(folder: Path, pattern: str) -> dict[int, Path]:
@@ -99,6 +100,7 @@ class FolderDataset:
         if not (len(self._rgb) == len(self._depth) == len(self._c2w) == len(self._valid) == len(self._timestamps)):
             raise AssertionError("reader produced inconsistent per-frame lists")  # programming error, not user input
         self.intrinsics = self._resolve_intrinsics(default)
+        self.colour_intrinsics = self._resolve_colour_intrinsics()
 
     # --- to implement -------------------------------------------------------------------------------------------
     @classmethod
@@ -159,6 +161,16 @@ class FolderDataset:
             )
         return default
 
+    def _resolve_colour_intrinsics(self) -> Optional[Intrinsics]:
+        """`data.color_intrinsics` for the colour files' size, or None (colour shares the depth intrinsics)."""
+        vals = self.cfg.color_intrinsics
+        if vals is None:
+            return None
+        if len(vals) != 4:
+            raise ConfigError(f"data.color_intrinsics: expected [fx, fy, cx, cy], got {list(vals)}")
+        width, height = image_size(self._rgb[0])
+        return Intrinsics(*(float(v) for v in vals), width, height).checked("data.color_intrinsics")
+
     def __len__(self) -> int:
         return len(self._rgb)
 
@@ -195,7 +207,13 @@ class FolderDataset:
             raise DataError(
                 f"{depth_path}: frame {i}: depth is {W}x{H}, expected {intr.width}x{intr.height} like the first frame"
             )
-        rgb = read_rgb(rgb_path, size=(W, H) if self.resize_colour else None)
+        ci = self.colour_intrinsics
+        rgb = read_rgb(rgb_path, size=(W, H) if self.resize_colour and ci is None else None)
+        if ci is not None:  # colour resampled into the depth camera
+            if rgb.shape[:2] != (ci.height, ci.width):
+                raise DataError(f"{rgb_path}: frame {i}: colour is {rgb.shape[1]}x{rgb.shape[0]}, expected "
+                                f"{ci.width}x{ci.height} like the first frame (data.color_intrinsics)")
+            rgb = reproject_image(rgb, ci, intr)
         if rgb.shape[:2] != (H, W):
             raise DataError(
                 f"{rgb_path}: frame {i}: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth {depth_path.name} "

@@ -54,6 +54,9 @@ class DataConfig:
     start: int = 0  # index of the first frame kept
     depth_scale: Optional[float] = None  # raw units per metre; None = per reader (replica 6553.5, tum 5000, else 1000)
     intrinsics: Optional[list[float]] = None  # [fx, fy, cx, cy] px of the files on disk; None = reader's
+    color_intrinsics: Optional[list[float]] = None  # [fx, fy, cx, cy] px of the colour files when the colour camera
+    # differs from the depth camera (7-Scenes: Kinect colour ~525 px, depth 585): colour is resampled into the depth
+    # camera (baseline neglected); None = colour shares the depth intrinsics
     bounds: Optional[list[list[float]]] = None  # [[xmin, xmax], [ymin, ymax], [zmin, zmax]] m; None = table/estimate
     bounds_frames: int = 20  # frames (evenly spread over the sequence) back-projected when estimating bounds
     bounds_margin: float = 0.2  # metres added on every side of estimated bounds

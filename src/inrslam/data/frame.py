@@ -71,3 +71,12 @@ class RGBDDataset(Protocol):
 
 
 NAN_POSE = np.full((4, 4), np.nan)
+
+
+def repeated_streams(prev: Frame, cur: Frame) -> str | None:
+    """"colour", "depth" or "both" when `cur`'s colour / depth is bit-identical to `prev`'s: a dropped sensor frame
+    that the recorder repeated (7-Scenes has them every few frames in places), so that `cur`'s colour and depth were
+    taken at different times; None when both are new."""
+    same = [name for name, a, b in (("colour", prev.rgb, cur.rgb), ("depth", prev.depth, cur.depth))
+            if np.array_equal(a, b)]
+    return None if not same else same[0] if len(same) == 1 else "both"

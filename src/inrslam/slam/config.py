@@ -102,6 +102,9 @@ class PhotoConfig:
     affine_light: bool = False  # also fit an affine brightness change (1 + a) I + b of the reference (exposure)
     gicp_prior: float = 0.0  # weight of GICP's pose and Hessian as a prior of the alignment (0 = off; 1 = each
     # residual's own variance; docs/accurate.md)
+    skip_stale: bool = False  # a frame whose colour or depth is bit-identical to the previous frame's (a dropped
+    # sensor frame repeated: colour and depth from different times; 7-Scenes) is not refined nor made a photometric
+    # keyframe; its pose is GICP of its depth onto the previous frame's (logged as `stale`; docs/accurate.md)
 
 
 @dataclass

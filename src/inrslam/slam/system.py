@@ -14,7 +14,7 @@ import numpy as np
 import torch
 import trimesh
 
-from inrslam.data.frame import Frame, RGBDDataset
+from inrslam.data.frame import Frame, RGBDDataset, repeated_streams
 from inrslam.data.given_poses import GivenPoses, load_given_poses
 from inrslam.errors import ConfigError, DataError, TrackingLost
 from inrslam.geometry.se3 import mean_pose
@@ -134,6 +134,7 @@ class SlamSystem:
         # after a resume)
         self._photo_pyrs: dict[int, list[PhotoLevel]] = {}
         self._gicp_information: np.ndarray | None = None  # the current frame's GICP information (`pose_information`)
+        self._prev_frame: Frame | None = None  # the previous frame (slam.photo.skip_stale), in memory only
 
     def _make_model(self) -> SceneModel:
         """The map the loop trains (a subclass with another mapper may return its own `SceneModel` subclass)."""
@@ -232,7 +233,15 @@ class SlamSystem:
             pred = self._gicp_init(i, frame, pred, extra, noise)
         cur_pyr = None
         if cfg.photo.enabled and n_valid_depth > 0 and noise is not None and noise >= cfg.photo.min_depth_noise:
-            pred, cur_pyr = self._photo_refine(i, frame, pred, smooth, extra)
+            stale = None
+            if cfg.photo.skip_stale:
+                before, self._prev_frame = self._previous_frame(i), frame
+                stale = repeated_streams(before, frame)
+            if stale:  # colour and depth from different times: no photometric refinement, GICP onto frame i-1
+                extra["stale"] = stale
+                pred = self._stale_pose(i, before, frame, pred, noise)
+            else:
+                pred, cur_pyr = self._photo_refine(i, frame, pred, smooth, extra)
         if n_valid_depth == 0:
             # no depth: colour-only tracking is ill-posed at the paper's settings; keep the prediction
             c2w, loss, fallback, iters = pred, float("nan"), "no_valid_depth", 0
@@ -414,6 +423,25 @@ class SlamSystem:
         if "init_fallback" in rec and pc.rescue:
             rec["photo_rescued"] = True
         return c2w.to(dtype=pred.dtype, device=pred.device), cur
+
+    def _previous_frame(self, i: int) -> Frame:
+        """Frame i-1: kept from its processing (slam.photo.skip_stale), or read again (after a resume)."""
+        if self._prev_frame is None or self._prev_frame.index != i - 1:
+            return self.dataset[i - 1]
+        return self._prev_frame
+
+    def _stale_pose(self, i: int, prev: Frame, frame: Frame, pred: torch.Tensor, noise: float | None) -> torch.Tensor:
+        """Pose of a stale frame (slam.photo.skip_stale): frame i-1's pose moved by GICP of frame i's depth onto
+        frame i-1's, from `pred` (identity where the depth repeats); `pred` when the registration fails its checks.
+        Not GICP's pose onto the local map: on real sensors that sits about a centimetre off the photometric one."""
+        g = self.cfg.slam.gicp
+        base = self.est[i - 1].double().cpu().numpy()
+        reg = register(PreparedCloud(depth_points(prev.depth, prev.intrinsics, g), g),
+                       PreparedCloud(depth_points(frame.depth, frame.intrinsics, g, noise), g),
+                       np.linalg.inv(base) @ pred.double().cpu().numpy(), g)
+        if not reg.ok:
+            return pred
+        return torch.as_tensor(base @ reg.T_target_source, dtype=pred.dtype, device=pred.device)
 
     def _photo_pyramid(self, k: int) -> list[PhotoLevel]:
         """Photometric pyramid of keyframe k: kept from when it became one, or rebuilt (after a resume)."""
