@@ -145,3 +145,17 @@ def _logged_frames(out: Path) -> int:
     if not p.exists():
         return 0
     return sum(1 for line in p.read_text().splitlines() if line.strip())
+
+
+def test_initialisation_ends_on_a_plateau_only_when_asked():
+    from inrslam.datasets import open_dataset
+    from inrslam.slam.system import SlamSystem
+
+    def init_record(extra):
+        cfg = quick_cfg(["data.max_frames=1", "slam.init_iters=100", "slam.init_pixels=256"] + extra)
+        return SlamSystem(cfg, open_dataset(cfg.data)).process(0)[0]
+
+    plain = init_record([])
+    early = init_record(["slam.init_stop_window=10", "slam.init_stop_tol=0.5"])  # stop once a window falls < 50 %
+    assert plain["type"] == early["type"] == "init" and plain["iters"] == 100
+    assert 20 <= early["iters"] < 100 and early["iters"] % 10 == 0

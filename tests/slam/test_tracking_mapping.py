@@ -124,3 +124,36 @@ def test_mapping_skips_non_finite_losses_without_touching_the_map():
     res = map_frame(model, opt, make_store(2), torch.eye(4).repeat(2, 1, 1), torch.eye(4), lambda n: rays(n, 0),
                     cfg, torch.Generator())
     assert res.skipped == 3 and model.w.item() == 1.0
+
+
+def test_loss_plateaued_on_analytic_histories():
+    from inrslam.slam.mapping import loss_plateaued
+
+    geometric = [0.9**k for k in range(200)]  # window means fall by 0.9^10 = 0.35 every 10 iterations: never flat
+    assert not any(loss_plateaued(geometric[:n], 10, 0.01) for n in range(1, 201))
+    # loss 1 / (k + 1): the mean of window j (iterations 10 j .. 10 j + 9) is about 1 / (10 (j + 1/2)), so two
+    # consecutive windows differ by a factor (j + 1/2) / (j + 3/2) > 0.99 first at j = 99: the check after
+    # iteration 10 (j + 2) = 1010
+    harmonic = [1.0 / (k + 1) for k in range(5000)]
+    assert next(n for n in range(1, 5001) if loss_plateaued(harmonic[:n], 10, 0.01)) == 1010
+    flat = [1.0] * 40
+    assert [n for n in range(1, 41) if loss_plateaued(flat[:n], 10, 0.01)] == [20, 30, 40]  # every window, from two
+    assert not loss_plateaued([float("nan")] * 20, 10, 0.01)  # no finite loss: not a plateau
+    assert not loss_plateaued(flat[:20], 0, 0.01)
+
+
+def test_initialisation_stops_once_the_loss_is_flat():
+    from inrslam.slam.mapping import initialise, loss_plateaued
+
+    # loss = 1 + w^2 (the fixed camera sits 1 m from its target): Adam (lr 0.1) drives w to 0, then the loss is flat
+    model = StubModel(torch.tensor([[1.0, 0.0, 0.0]]))
+    opt = {"scene": torch.optim.Adam(model.parameters(), lr=0.1)}
+    rays0 = lambda n: (torch.eye(4),) + rays(n, 0)  # noqa: E731
+    full = initialise(model, opt, rays0, 300, 8, None)
+    assert len(full) == 300
+    model = StubModel(torch.tensor([[1.0, 0.0, 0.0]]))
+    opt = {"scene": torch.optim.Adam(model.parameters(), lr=0.1)}
+    early = initialise(model, opt, rays0, 300, 8, None, stop_window=20, stop_tol=0.01)
+    assert 40 <= len(early) < 300 and len(early) % 20 == 0
+    assert early == full[:len(early)]  # the same steps, fewer of them
+    assert loss_plateaued(early, 20, 0.01) and not any(loss_plateaued(early[:n], 20, 0.01) for n in range(len(early)))

@@ -58,7 +58,8 @@ RANGES: dict[str, Rule] = {
     "loss.behind": between(0.0, 1.0), "loss.silhouette_behind": between(0.0, 1.0), "loss.silhouette_jump": POS,
     "loss.silhouette_radius": COUNT,
     # slam
-    "slam.init_iters": NONNEG, "slam.init_pixels": COUNT, "slam.track_iters": NONNEG, "slam.track_pixels": COUNT,
+    "slam.init_iters": NONNEG, "slam.init_pixels": COUNT, "slam.init_stop_window": NONNEG,
+    "slam.init_stop_tol": NONNEG, "slam.track_iters": NONNEG, "slam.track_pixels": COUNT,
     "slam.track_lr": POS, "slam.track_edge": NONNEG, "slam.map_every": COUNT, "slam.map_iters": NONNEG,
     "slam.map_pixels": COUNT, "slam.map_current_min": NONNEG, "slam.map_lr": POS, "slam.ba_lr": POS,
     "slam.ba_pose_every": COUNT, "slam.keyframe_fraction": between(0.0, 1.0, open_lo=True),

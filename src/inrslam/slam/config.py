@@ -155,6 +155,9 @@ class SlamConfig:
 
     init_iters: int = 500  # optimisation iterations on the first frame
     init_pixels: int = 2048  # rays per initialisation iteration
+    init_stop_window: int = 0  # end initialisation early once the mean loss of the last this-many iterations is less
+    # than init_stop_tol below the mean of the window before it (0 = off: all init_iters; docs/speed.md)
+    init_stop_tol: float = 0.01  # relative fall of the windowed mean loss below which initialisation ends
     track_iters: int = 20  # pose iterations per frame
     track_pixels: int = 1024  # rays per tracking iteration (drawn once per frame)
     track_lr: float = 1e-3  # Adam learning rate of the pose

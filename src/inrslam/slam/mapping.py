@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
@@ -95,14 +96,15 @@ def refit(model: SceneModel, optimizers: Optimizers, store: KeyframeStore, kf_c2
 
 
 def initialise(model: SceneModel, optimizers: Optimizers, frame_rays: FrameRays, iters: int, n_pixels: int,
-               generator: torch.Generator | None) -> list[float]:
-    """Fit the scene to the first frame (pose fixed) for `iters` iterations of `n_pixels` fresh random rays.
+               generator: torch.Generator | None, stop_window: int = 0, stop_tol: float = 0.0) -> list[float]:
+    """Fit the scene to the first frame (pose fixed) for `iters` iterations of `n_pixels` fresh random rays, or
+    fewer: with `stop_window` > 0, until `loss_plateaued(hist, stop_window, stop_tol)`.
 
     Args:
         model, optimizers: as `map_frame`.
         frame_rays: n -> (c2w (4,4), dirs_cam (n,3), rgb (n,3), depth (n,) metres[, behind (n,) or None]).
         generator: sample-jitter generator (None: the global one).
-    Returns: the loss of every iteration.
+    Returns: the loss of every iteration run.
     """
     hist: list[float] = []
     for _ in range(iters):
@@ -110,7 +112,25 @@ def initialise(model: SceneModel, optimizers: Optimizers, frame_rays: FrameRays,
         losses, _ = model.loss(c2w, dirs, rgb, depth, generator, behind=rest[0] if rest else None)
         optimisation_step(losses["total"], optimizers)
         hist.append(float(losses["total"].detach()))
+        if stop_window > 0 and loss_plateaued(hist, stop_window, stop_tol):
+            break
     return hist
+
+
+def loss_plateaued(hist: list[float], window: int, tol: float) -> bool:
+    """Whether a noisy loss history has stopped falling: checked every `window` iterations, once there are two full
+    windows, true when the mean of the last `window` losses is less than `tol` (relative) below the mean of the
+    `window` before (non-finite losses are left out; a window without a finite one is not a plateau). Example:
+    loss 0.9^k, window 10: the ratio of two consecutive window means is 0.9^10 = 0.35, never a plateau at tol 0.01."""
+    n = len(hist)
+    if window < 1 or n < 2 * window or n % window:
+        return False
+    last = [x for x in hist[n - window:] if math.isfinite(x)]
+    before = [x for x in hist[n - 2 * window:n - window] if math.isfinite(x)]
+    if not last or not before:
+        return False
+    m_last, m_before = sum(last) / len(last), sum(before) / len(before)
+    return m_last > (1.0 - tol) * m_before
 
 
 def _join_behind(kf: Tensor | None, cur: list[Tensor], depth_kf: Tensor, depth_c: Tensor) -> Tensor | None:

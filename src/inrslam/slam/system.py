@@ -210,7 +210,7 @@ class SlamSystem:
             t0 = time.perf_counter()
             hist = initialise(self.model, self.state.optimizers,
                               lambda n: (c2w0,) + ft.training_rays(ft.sample_index(n, self.generator)),
-                              cfg.init_iters, cfg.init_pixels, self.generator)
+                              cfg.init_iters, cfg.init_pixels, self.generator, cfg.init_stop_window, cfg.init_stop_tol)
             self.state.init_ms = (time.perf_counter() - t0) * 1e3
             if hist and math.isfinite(hist[-1]):
                 self.state.track_losses = [hist[-1]]  # seeds the running loss level of lost-tracking detection
