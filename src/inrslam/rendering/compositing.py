@@ -29,10 +29,11 @@ def composite(weights: Tensor, rgb: Tensor, z: Tensor) -> tuple[Tensor, Tensor, 
     return out_rgb, depth, opacity, depth_var
 
 
-def _first_sign_change(sdf: Tensor) -> tuple[Tensor, Tensor]:
-    """(R,) index k of the first interval [k, k+1] where (R, S) `sdf` goes from > 0 to <= 0 (0 if none), (R,) has."""
+def _sign_changes(sdf: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(R, S) `sdf` -> (R, S-1) cross: interval [k, k+1] goes from > 0 to <= 0; (R,) index of the first one (0 if
+    none); (R,) whether there is one."""
     cross = (sdf[:, :-1] > 0) & (sdf[:, 1:] <= 0)
-    return torch.argmax(cross.to(torch.int8), dim=1), cross.any(dim=1)
+    return cross, torch.argmax(cross.to(torch.int8), dim=1), cross.any(dim=1)
 
 
 def first_crossing(sdf: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
@@ -46,7 +47,7 @@ def first_crossing(sdf: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
 
     Example: sdf = [[1, 0.5, -0.5]], z = [[1, 2, 3]] -> depth 2.5, has True.
     """
-    k, has = _first_sign_change(sdf)
+    _, k, has = _sign_changes(sdf)
     r = torch.arange(z.shape[0], device=z.device)
     s0, s1 = sdf[r, k], sdf[r, k + 1]
     t = s0 / (s0 - s1).clamp_min(1e-8)
@@ -76,8 +77,7 @@ def surface_intervals(sdf_m: Tensor, seg_m: Tensor, count: int, margin: float = 
     """
     R, S = sdf_m.shape
     a, b = sdf_m[:, :-1], sdf_m[:, 1:]
-    cross = (a > 0) & (b <= 0)
-    k, has = _first_sign_change(sdf_m)
+    cross, k, has = _sign_changes(sdf_m)
     first = torch.where(has, k, S)  # S: no crossing
     idx = torch.arange(S - 1, device=sdf_m.device).expand(R, -1)
     near = (a > 0) & (b > 0) & (a + b < margin * seg_m)

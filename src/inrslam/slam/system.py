@@ -237,9 +237,10 @@ class SlamSystem:
             if cfg.photo.skip_stale:
                 before, self._prev_frame = self._previous_frame(i), frame
                 stale = repeated_streams(before, frame)
-            if stale:  # colour and depth from different times: no photometric refinement, GICP onto frame i-1
-                extra["stale"] = stale
-                pred = self._stale_pose(i, before, frame, pred, noise)
+            if stale:  # colour and depth from different times: no photometric refinement; GICP onto frame i-1
+                extra["stale"] = stale  # (identity where the depth repeats), not onto the local map, which sits
+                onto_prev = self._gicp_onto_previous(i, before, frame, pred, cfg.gicp)  # ~1 cm off the image's pose
+                pred = pred if onto_prev is None else onto_prev
             else:
                 pred, cur_pyr = self._photo_refine(i, frame, pred, smooth, extra)
         if n_valid_depth == 0:
@@ -331,14 +332,17 @@ class SlamSystem:
         correspondence distance (from the prediction), and the previous pose (no motion)."""
         g = dataclasses.replace(self.cfg.slam.gicp, max_corr=self.cfg.slam.lost.recover_max_corr, max_step=1.0,
                                 min_fitness=0.3)
-        prev = self.dataset[i - 1]
+        wide = self._gicp_onto_previous(i, self.dataset[i - 1], frame, pred, g)
+        return ([] if wide is None else [wide]) + [self.est[i - 1].clone()]
+
+    def _gicp_onto_previous(self, i: int, prev: Frame, frame: Frame, pred: torch.Tensor,
+                            g: GicpConfig) -> torch.Tensor | None:
+        """Frame i's pose by GICP (settings `g`) of its depth onto frame i-1's (`prev`, at its estimated pose), from
+        `pred`; None when the registration fails a check."""
         base = self.est[i - 1].double().cpu().numpy()
         reg = register(prepare_depth(prev.depth, prev.intrinsics, g), prepare_depth(frame.depth, frame.intrinsics, g),
                        np.linalg.inv(base) @ pred.double().cpu().numpy(), g)
-        starts = [self.est[i - 1].clone()]
-        if reg.ok:
-            starts.insert(0, torch.as_tensor(base @ reg.T_target_source, dtype=pred.dtype, device=pred.device))
-        return starts
+        return torch.as_tensor(base @ reg.T_target_source, dtype=pred.dtype, device=pred.device) if reg.ok else None
 
     def _gicp_init(self, i: int, frame: Frame, pred: torch.Tensor, rec: dict,
                    noise: float | None = None) -> torch.Tensor:
@@ -429,19 +433,6 @@ class SlamSystem:
         if self._prev_frame is None or self._prev_frame.index != i - 1:
             return self.dataset[i - 1]
         return self._prev_frame
-
-    def _stale_pose(self, i: int, prev: Frame, frame: Frame, pred: torch.Tensor, noise: float | None) -> torch.Tensor:
-        """Pose of a stale frame (slam.photo.skip_stale): frame i-1's pose moved by GICP of frame i's depth onto
-        frame i-1's, from `pred` (identity where the depth repeats); `pred` when the registration fails its checks.
-        Not GICP's pose onto the local map: on real sensors that sits about a centimetre off the photometric one."""
-        g = self.cfg.slam.gicp
-        base = self.est[i - 1].double().cpu().numpy()
-        reg = register(PreparedCloud(depth_points(prev.depth, prev.intrinsics, g), g),
-                       PreparedCloud(depth_points(frame.depth, frame.intrinsics, g, noise), g),
-                       np.linalg.inv(base) @ pred.double().cpu().numpy(), g)
-        if not reg.ok:
-            return pred
-        return torch.as_tensor(base @ reg.T_target_source, dtype=pred.dtype, device=pred.device)
 
     def _photo_pyramid(self, k: int) -> list[PhotoLevel]:
         """Photometric pyramid of keyframe k: kept from when it became one, or rebuilt (after a resume)."""
