@@ -22,16 +22,16 @@ def warp_error(ref, cur, T_cur_ref: np.ndarray, f: float, cx: float, cy: float) 
     """Mean |grey_ref - grey_cur| over ref's valid-depth pixels seen by both colour cameras (bilinear)."""
     from scipy.ndimage import map_coordinates
 
+    from inrslam.geometry.pinhole import backproject_np, project_np
+
     intr = ref.intrinsics
-    v, u = np.nonzero(ref.depth > 0)
-    z = ref.depth[v, u].astype(np.float64)
-    X = np.stack([(u - intr.cx) * z / intr.fx, (v - intr.cy) * z / intr.fy, z])
-    Y = T_cur_ref[:3, :3] @ X + T_cur_ref[:3, 3:4]
+    X = backproject_np(ref.depth, intr.fx, intr.fy, intr.cx, intr.cy)  # (N, 3) in ref's depth camera
+    Y = X @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
     h, w = ref.rgb.shape[:2]
-    ua, va = X[0] / X[2] * f + cx, X[1] / X[2] * f + cy
-    ub, vb = Y[0] / Y[2] * f + cx, Y[1] / Y[2] * f + cy
+    ua, va, _ = project_np(X, f, f, cx, cy)
+    ub, vb, zb = project_np(Y, f, f, cx, cy)
     inside = lambda x, y: (x > 1) & (x < w - 2) & (y > 1) & (y < h - 2)  # noqa: E731
-    m = inside(ua, va) & inside(ub, vb) & (Y[2] > 0)
+    m = inside(ua, va) & inside(ub, vb) & (zb > 0)
     ga, gb = ref.rgb.mean(-1), cur.rgb.mean(-1)
     a = map_coordinates(ga, [va[m], ua[m]], order=1)
     b = map_coordinates(gb, [vb[m], ub[m]], order=1)
