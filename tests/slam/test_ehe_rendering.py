@@ -105,7 +105,7 @@ def test_ehe_losses_are_l1_on_hit_rays_with_the_configured_weights():
 def test_a_plane_prior_renders_the_planes_depth():
     class Cfg:
         ehe = EheConfig()
-        field = type("F", (), {"kernel": "auto"})
+        field = type("F", (), {"kernel": "auto", "decoder_kernel": "torch"})
 
     model = EheModel(Cfg, UNIT)
     vg, T = model.field.voxels, Cfg.ehe.truncation

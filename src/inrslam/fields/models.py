@@ -18,6 +18,7 @@ from inrslam.errors import ConfigError
 from inrslam.fields.config import Coupling, FieldConfig, KernelChoice
 from inrslam.fields.encoders import GridEncoder, TensoRFEncoder, TriPlaneEncoder
 from inrslam.fields.gamma import FourierFeatures, make_gamma
+from inrslam.fields.kernels.mlp import mlp2
 from inrslam.fields.registry import ENCODINGS
 from inrslam.fields.resolution import plane_sizes
 
@@ -77,6 +78,15 @@ class Field(nn.Module):
     def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
         raise NotImplementedError
 
+    def decode(self, net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+        """Decoder `net` on x (N, in) -> (N, out): grid decoders (Linear-ReLU-Linear, no biases) by
+        `field.decoder_kernel`, plane decoders (3 layers with biases) in torch. `torch` runs the module itself, so
+        that results stay bit-for-bit those of earlier versions."""
+        backend = KernelChoice(self.cfg.decoder_kernel).value
+        if len(net) != 3 or backend == "torch":
+            return net(x)
+        return mlp2(x, net[0].weight, net[2].weight, backend)
+
 
 class EncoderField(Field):
     """Encoder + decoders with the three coupling modes of docs/spec.md §3.8.
@@ -111,18 +121,18 @@ class EncoderField(Field):
     def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
         gam = self.gamma(p)
         feat = self.encoder(p)
-        h = self.sdf_net(torch.cat([feat, gam], dim=-1))
+        h = self.decode(self.sdf_net, torch.cat([feat, gam], dim=-1))
         if self.plane_style:
             h = torch.tanh(h)
         if not need_rgb:
             return FieldOutput(h[:, 0], None)
         if self.coupling is Coupling.COUPLED:
-            rgb = self.rgb_net(torch.cat([h[:, 1:], gam], dim=-1))
+            rgb_in = torch.cat([h[:, 1:], gam], dim=-1)
         elif self.coupling is Coupling.DECOUPLED:
-            rgb = self.rgb_net(torch.cat([gam, self.app_encoder(p)], dim=-1))
+            rgb_in = torch.cat([gam, self.app_encoder(p)], dim=-1)
         else:
-            rgb = self.rgb_net(torch.cat([gam, feat], dim=-1))
-        return FieldOutput(h[:, 0], rgb)
+            rgb_in = torch.cat([gam, feat], dim=-1)
+        return FieldOutput(h[:, 0], self.decode(self.rgb_net, rgb_in))
 
 
 @ENCODINGS.register("mlp", help="4x256 MLP on Gaussian Fourier features (iMAP-like)")
@@ -226,10 +236,10 @@ class _HybridField(Field):
     def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
         gam = self.gamma(p)
         fg = self.grid(p)
-        s = self.sdf_net(torch.cat([fg, self.planes(p), gam], dim=-1))[:, 0]
+        s = self.decode(self.sdf_net, torch.cat([fg, self.planes(p), gam], dim=-1))[:, 0]
         if not need_rgb:
             return FieldOutput(s, None)
-        return FieldOutput(s, self.rgb_net(torch.cat([gam, fg], dim=-1)))
+        return FieldOutput(s, self.decode(self.rgb_net, torch.cat([gam, fg], dim=-1)))
 
 
 @ENCODINGS.register("dense+tri", help="hybrid: dense grid + one coarse tri-plane level (geometry), grid (colour)")
@@ -261,7 +271,7 @@ def _validate(cfg: FieldConfig, bounds: np.ndarray) -> np.ndarray:
             raise ConfigError(f"field.{key}: expected a positive length in metres, got {getattr(cfg, key)!r}")
     if not 1 <= cfg.log2_hashmap_size <= 30:
         raise ConfigError(f"field.log2_hashmap_size: expected 1..30, got {cfg.log2_hashmap_size}")
-    for key, enum_t in (("coupling", Coupling), ("kernel", KernelChoice)):
+    for key, enum_t in (("coupling", Coupling), ("kernel", KernelChoice), ("decoder_kernel", KernelChoice)):
         try:
             enum_t(getattr(cfg, key))
         except ValueError:

@@ -183,6 +183,11 @@ def second_order():
         _SCOPES.second_order -= 1
 
 
+def second_order_active() -> bool:
+    """True inside ``second_order()`` on this thread (a ``create_graph`` backward may follow)."""
+    return _SCOPES.second_order > 0
+
+
 @contextlib.contextmanager
 def input_grad_only():
     """Within this scope, backward passes of ``MultilinearFn`` return no table gradient: for

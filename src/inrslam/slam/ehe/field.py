@@ -3,12 +3,15 @@ decoded from one 2 cm dense feature level; colour decoded from the same features
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import torch
 from torch import Tensor, nn
 
 from inrslam.fields.config import KernelChoice
 from inrslam.fields.encoders import GridEncoder
+from inrslam.fields.kernels.mlp import mlp2
 from inrslam.fields.models import FieldOutput, grid_decoder
 from inrslam.slam.ehe.config import EheConfig
 from inrslam.slam.ehe.voxels import VoxelGrid
@@ -27,8 +30,10 @@ class EheField(nn.Module):
     voxels: VoxelGrid
     grid: GridEncoder
 
-    def __init__(self, cfg: EheConfig, bounds: np.ndarray, kernel: KernelChoice = KernelChoice.AUTO):
+    def __init__(self, cfg: EheConfig, bounds: np.ndarray, kernel: KernelChoice = KernelChoice.AUTO,
+                 decoder_kernel: KernelChoice = KernelChoice.TORCH):
         super().__init__()
+        self.decoder_kernel = KernelChoice(decoder_kernel).value
         b = np.asarray(bounds, dtype=np.float64)
         self.truncation = float(cfg.truncation)
         self.register_buffer("bounds", torch.tensor(b, dtype=torch.float32))
@@ -49,16 +54,23 @@ class EheField(nn.Module):
 
     def sdf_from(self, x: Tensor, p: Tensor, f: Tensor) -> Tensor:
         """s = s_prior(x) + D_s([f, p̂]), (N,) T-units, from `encode`'s outputs."""
-        return self.voxels.prior_at(x) + self.sdf_net(torch.cat([f, p], dim=-1))[:, 0]
+        return self.voxels.prior_at(x) + self._dec(self.sdf_net, torch.cat([f, p], dim=-1))[:, 0]
 
     def rgb_from(self, p: Tensor, f: Tensor) -> Tensor:
         """Colour logits D_c([p̂, f]), (N, 3), from `encode`'s outputs."""
-        return self.rgb_net(torch.cat([p, f], dim=-1))
+        return self._dec(self.rgb_net, torch.cat([p, f], dim=-1))
 
     def residual(self, x: Tensor) -> Tensor:
         """The decoded SDF residual alone, (N,) T-units."""
         p, f = self.encode(x)
-        return self.sdf_net(torch.cat([f, p], dim=-1))[:, 0]
+        return self._dec(self.sdf_net, torch.cat([f, p], dim=-1))[:, 0]
+
+    def _dec(self, net: nn.Sequential, x: Tensor) -> Tensor:
+        """A Linear-ReLU-Linear decoder on x (N, in) -> (N, out), by `field.decoder_kernel` (torch: the module)."""
+        if self.decoder_kernel == "torch":
+            return net(x)
+        first, last = cast(nn.Linear, net[0]), cast(nn.Linear, net[2])
+        return mlp2(x, first.weight, last.weight, self.decoder_kernel)
 
     def forward(self, x: Tensor) -> FieldOutput:
         p, f = self.encode(x)

@@ -19,7 +19,8 @@ from inrslam.slam.ehe.rendering import EheRender, render_samples
 
 
 class EheModel(nn.Module):
-    """EHE scene model over `bounds` ((3, 2) metres) from a run config with an `ehe` section (and `field.kernel`).
+    """EHE scene model over `bounds` ((3, 2) metres) from a run config with an `ehe` section (and `field.kernel`,
+    `field.decoder_kernel`).
 
     Attributes: field (`EheField`), truncation T metres, bounds (3, 2) buffer.
     """
@@ -30,7 +31,7 @@ class EheModel(nn.Module):
     def __init__(self, cfg, bounds: np.ndarray):
         super().__init__()
         self.ecfg: EheConfig = cfg.ehe
-        self.field = EheField(self.ecfg, bounds, kernel=cfg.field.kernel)
+        self.field = EheField(self.ecfg, bounds, kernel=cfg.field.kernel, decoder_kernel=cfg.field.decoder_kernel)
         self.truncation = float(self.ecfg.truncation)
         self.register_buffer("bounds", torch.as_tensor(np.asarray(bounds), dtype=torch.float32))
 

@@ -1,0 +1,179 @@
+"""Fused grid decoder ``relu(x W1^T) W2^T`` (no biases) for CPU tensors.
+
+In autograd this small MLP (7 -> 32 -> 1..3 at `paper` settings) spends most of its time writing and re-reading
+(N, 32) hidden tensors: the matmuls, the ReLU and its mask, forward and backward. The numba kernels keep one
+sample's hidden vector in registers and recompute it in the backward pass instead of storing it. The reference is
+``mlp2_torch``; ``mlp2`` dispatches. Results do not depend on the thread count: samples are cut into fixed blocks
+of ``BLOCK`` and the weight gradients' per-block partial sums are added in block order. (A per-sample kernel of
+the plane decoder, whose 32x32 middle layer is a batched GEMM's job, ran at 0.4x autograd's speed: plane decoders
+stay in torch.)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numba import njit, prange
+
+from inrslam.fields.kernels.function import second_order_active
+
+#: Samples per block of the parallel loops (fixed, so that the weight gradients sum in the same order on any
+#: number of threads).
+BLOCK = 1024
+
+#: LLVM may reorder sums and fuse multiply-adds (so the loops vectorise) but not assume finite values: a NaN input
+#: stays NaN in the output, as in the reference.
+_FASTMATH = {"reassoc", "contract", "arcp", "nsz"}
+
+
+@njit(inline="always", cache=True, fastmath=_FASTMATH)
+def _hidden(x, n, w1t, h):  # pragma: no cover - numba
+    """Sample n's hidden layer relu(x[n] w1t) into h (H,)."""
+    h[:] = 0
+    for i in range(x.shape[1]):
+        xi = x[n, i]
+        for j in range(w1t.shape[1]):
+            h[j] += xi * w1t[i, j]
+    for j in range(w1t.shape[1]):
+        if h[j] < 0.0:  # (not max(): that would turn NaN into 0)
+            h[j] = 0.0
+
+
+@njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def _forward(x, w1t, w2, out):  # pragma: no cover - numba
+    """x (N, I), w1t (I, H), w2 (O, H) -> out (N, O) = relu(x w1t) w2^T."""
+    n_pts, n_in = x.shape
+    n_hid = w1t.shape[1]
+    n_out = w2.shape[0]
+    n_blocks = (n_pts + BLOCK - 1) // BLOCK
+    for b in prange(n_blocks):
+        h = np.empty(n_hid, dtype=w1t.dtype)
+        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
+            _hidden(x, n, w1t, h)
+            for o in range(n_out):
+                s = 0.0
+                for j in range(n_hid):
+                    s += h[j] * w2[o, j]
+                out[n, o] = s
+
+
+@njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def _backward(x, w1t, w2, gy, need_x, need_w, gx, gw1t_parts, gw2_parts):  # pragma: no cover - numba
+    """Gradients of out = relu(x w1t) w2^T for the output gradient gy (N, O): gx (N, I) when need_x, and per-block
+    weight gradients gw1t_parts (B, I, H), gw2_parts (B, O, H) when need_w (summed over blocks by the caller)."""
+    n_pts, n_in = x.shape
+    n_hid = w1t.shape[1]
+    n_out = w2.shape[0]
+    n_blocks = (n_pts + BLOCK - 1) // BLOCK
+    for b in prange(n_blocks):
+        h = np.empty(n_hid, dtype=w1t.dtype)
+        gh = np.empty(n_hid, dtype=w1t.dtype)
+        acc1 = np.zeros((n_in, n_hid), dtype=w1t.dtype)
+        acc2 = np.zeros((n_out, n_hid), dtype=w1t.dtype)
+        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
+            _hidden(x, n, w1t, h)
+            gh[:] = 0
+            for o in range(n_out):
+                g = gy[n, o]
+                for j in range(n_hid):
+                    gh[j] += g * w2[o, j]
+                if need_w:
+                    for j in range(n_hid):
+                        acc2[o, j] += g * h[j]
+            for j in range(n_hid):
+                if h[j] <= 0:
+                    gh[j] = 0.0
+            if need_x:
+                for i in range(n_in):
+                    s = 0.0
+                    for j in range(n_hid):
+                        s += gh[j] * w1t[i, j]
+                    gx[n, i] = s
+            if need_w:
+                for i in range(n_in):
+                    xi = x[n, i]
+                    for j in range(n_hid):
+                        acc1[i, j] += xi * gh[j]
+        if need_w:
+            gw1t_parts[b] = acc1
+            gw2_parts[b] = acc2
+
+
+def mlp2_torch(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
+    """Reference: x (N, I), w1 (H, I), w2 (O, H) -> (N, O) = relu(x w1^T) w2^T (any device, fully differentiable)."""
+    return torch.relu(x @ w1.t()) @ w2.t()
+
+
+class Mlp2Fn(torch.autograd.Function):
+    """Fused ``relu(x W1^T) W2^T`` on CPU tensors: forward and one backward (to x and to both weights, each only
+    when needed). Once differentiable: a second-order backward (``create_graph``) must use ``mlp2_torch``."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
+        xc = x.detach().contiguous()
+        w1t = w1.detach().t().contiguous()
+        w2c = w2.detach().contiguous()
+        out = np.empty((xc.shape[0], w2c.shape[0]), dtype=w1t.numpy().dtype)
+        _forward(xc.numpy(), w1t.numpy(), w2c.numpy(), out)
+        ctx.save_for_backward(xc, w1t, w2c)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, gy: torch.Tensor):
+        xc, w1t, w2c = ctx.saved_tensors
+        need_x, need_w1, need_w2 = ctx.needs_input_grad
+        need_w = need_w1 or need_w2
+        n, n_in = xc.shape
+        n_hid, n_out = w1t.shape[1], w2c.shape[0]
+        dtype = w1t.numpy().dtype
+        n_blocks = (n + BLOCK - 1) // BLOCK if need_w else 0
+        gx = np.empty((n if need_x else 0, n_in), dtype=dtype)
+        gw1t = np.zeros((n_blocks, n_in, n_hid), dtype=dtype)
+        gw2 = np.zeros((n_blocks, n_out, n_hid), dtype=dtype)
+        _backward(xc.numpy(), w1t.numpy(), w2c.numpy(), gy.detach().to(w1t.dtype).contiguous().numpy(), need_x,
+                  need_w, gx, gw1t, gw2)
+        gx_t = torch.from_numpy(gx) if need_x else None
+        gw1_t = torch.from_numpy(_sum_blocks(gw1t)).t().contiguous() if need_w1 else None
+        gw2_t = torch.from_numpy(_sum_blocks(gw2)) if need_w2 else None
+        return gx_t, gw1_t, gw2_t
+
+
+def _sum_blocks(parts: np.ndarray) -> np.ndarray:
+    """(B, ...) -> (...) summed in block order (the same order on any thread count)."""
+    total = parts[0].copy() if len(parts) else np.zeros(parts.shape[1:], parts.dtype)
+    for p in parts[1:]:
+        total += p
+    return total
+
+
+def mlp2(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, backend: str = "auto") -> torch.Tensor:
+    """relu(x W1^T) W2^T: x (N, I), w1 (H, I), w2 (O, H) -> (N, O).
+
+    backend: "numba" (fused, CPU float32/float64 tensors, once differentiable), "torch" (reference) or "auto"
+    (numba on CPU tensors of those dtypes). Inside ``kernels.second_order()`` (a ``create_graph`` backward may
+    follow) both run the reference."""
+    if backend not in ("auto", "torch", "numba"):
+        raise ValueError(f"unknown decoder kernel {backend!r} (choices: auto, torch, numba)")
+    if x.dim() != 2 or w1.dim() != 2 or w2.dim() != 2 or x.shape[1] != w1.shape[1] or w2.shape[1] != w1.shape[0]:
+        raise ValueError(f"mlp2: shapes x {tuple(x.shape)}, w1 {tuple(w1.shape)}, w2 {tuple(w2.shape)} do not chain "
+                         "(expected (N, I), (H, I), (O, H))")
+    fusable = (x.device.type == "cpu" and w1.device.type == "cpu" and w2.device.type == "cpu"
+               and x.dtype == w1.dtype == w2.dtype and x.dtype in (torch.float32, torch.float64))
+    backend = _resolve(backend, fusable)
+    if backend == "torch":
+        return mlp2_torch(x, w1, w2)
+    return Mlp2Fn.apply(x, w1, w2)
+
+
+def _resolve(backend: str, fusable: bool) -> str:
+    """The backend that runs: the reference wherever a second-order backward may follow (inside
+    ``kernels.second_order()``: NeuS normals), else numba for "auto" where fusable; an impossible "numba" errors."""
+    if second_order_active():
+        return "torch"
+    if backend == "auto":
+        return "numba" if fusable else "torch"
+    if backend == "numba" and not fusable:
+        raise ValueError("decoder kernel 'numba' needs CPU float32/float64 tensors of one dtype; use 'auto' or "
+                         "'torch' on other devices")
+    return backend

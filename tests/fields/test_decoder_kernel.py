@@ -1,0 +1,141 @@
+"""Fused grid decoder relu(x W1^T) W2^T (numba) vs the PyTorch reference: outputs, gradients, gradcheck, dispatch,
+and the field switch `field.decoder_kernel`."""
+
+import numpy as np
+import pytest
+import torch
+
+from inrslam.fields import kernels
+from inrslam.fields.config import FieldConfig
+from inrslam.fields.kernels.mlp import BLOCK, Mlp2Fn, mlp2, mlp2_torch
+from inrslam.fields.kernels.threads import thread_scope
+from inrslam.fields.models import build_field
+
+
+def _inputs(n, n_in=7, hidden=32, n_out=3, dtype=torch.float32, seed=None):
+    g = torch.Generator().manual_seed(int(np.random.SeedSequence(seed).generate_state(1)[0]))
+    x = torch.randn(n, n_in, dtype=dtype, generator=g)
+    w1 = torch.randn(hidden, n_in, dtype=dtype, generator=g) / n_in ** 0.5
+    w2 = torch.randn(n_out, hidden, dtype=dtype, generator=g) / hidden ** 0.5
+    cot = torch.randn(n, n_out, dtype=dtype, generator=g)
+    return x, w1, w2, cot
+
+
+def _grads(backend, x, w1, w2, cot, need=(True, True, True)):
+    leaves = [t.clone().requires_grad_(r) for t, r in zip((x, w1, w2), need)]
+    out = mlp2(*leaves, backend=backend)
+    out.backward(cot)
+    return out.detach(), [t.grad for t in leaves]
+
+
+@pytest.mark.parametrize("n_out", [1, 3, 16])
+@pytest.mark.parametrize("n", [1, BLOCK - 1, 2 * BLOCK + 37])
+def test_fused_matches_reference(n, n_out):
+    x, w1, w2, cot = _inputs(n, n_out=n_out)  # fresh random inputs every run
+    out_r, grads_r = _grads("torch", x, w1, w2, cot)
+    out_f, grads_f = _grads("numba", x, w1, w2, cot)
+    torch.testing.assert_close(out_f, out_r, rtol=1e-5, atol=1e-5)
+    for gf, gr in zip(grads_f, grads_r):
+        torch.testing.assert_close(gf, gr, rtol=1e-4, atol=1e-4 * max(1.0, float(gr.abs().max())))
+
+
+@pytest.mark.parametrize("need", [(True, False, False), (False, True, True), (False, False, True)])
+def test_only_requested_gradients(need):
+    x, w1, w2, cot = _inputs(300)
+    _, grads_r = _grads("torch", x, w1, w2, cot, need)
+    _, grads_f = _grads("numba", x, w1, w2, cot, need)
+    for gf, gr, wanted in zip(grads_f, grads_r, need):
+        assert (gf is None) == (not wanted)
+        if wanted:
+            torch.testing.assert_close(gf, gr, rtol=1e-4, atol=1e-4)
+
+
+def test_gradcheck_float64():
+    """Input gradient on a few samples; weight gradients over several blocks (their per-block partial sums)."""
+    for n, need_x in ((6, True), (2 * BLOCK + 5, False)):
+        x, w1, w2, _ = _inputs(n, n_in=5, hidden=8, n_out=2, dtype=torch.float64)
+        # (steps of 1e-6 cross a ReLU kink only where a pre-activation lies within ~1e-6 of 0: negligible odds)
+        args = [x.clone().requires_grad_(need_x), w1.clone().requires_grad_(), w2.clone().requires_grad_()]
+        assert torch.autograd.gradcheck(lambda a, b, c: Mlp2Fn.apply(a, b, c), args, eps=1e-6, atol=1e-6)
+
+
+def test_analytic_case():
+    """relu([1, -2] W1^T) W2^T by hand: W1 = [[1, 0], [0, 1], [1, 1]] -> pre-activations (1, -2, -1), hidden
+    (1, 0, 0); W2 = [[2, 3, 4]] -> 2. Gradient to x: W1^T (mask * W2^T) = (2, 0)."""
+    x = torch.tensor([[1.0, -2.0]], requires_grad=True)
+    w1 = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], requires_grad=True)
+    w2 = torch.tensor([[2.0, 3.0, 4.0]], requires_grad=True)
+    y = mlp2(x, w1, w2, backend="numba")
+    y.backward(torch.ones_like(y))
+    assert y.item() == 2.0
+    assert x.grad.tolist() == [[2.0, 0.0]]
+    assert w2.grad.tolist() == [[1.0, 0.0, 0.0]]
+    assert w1.grad.tolist() == [[2.0, -4.0], [0.0, 0.0], [0.0, 0.0]]
+
+
+def test_weight_gradient_independent_of_threads():
+    x, w1, w2, cot = _inputs(5 * BLOCK + 11)
+    grads = []
+    for n in (1, 2):
+        with thread_scope(n):
+            grads.append(_grads("numba", x, w1, w2, cot)[1])
+    for a, b in zip(*grads):
+        assert torch.equal(a, b)
+
+
+def test_auto_dispatch():
+    x, w1, w2, cot = _inputs(50)
+    xr = x.clone().requires_grad_()
+    assert mlp2(xr, w1, w2).grad_fn.name() == "Mlp2FnBackward"  # CPU float tensors: fused
+    with kernels.second_order():  # a create_graph backward may follow: the differentiable reference, even if asked
+        assert "Mlp2Fn" not in mlp2(xr, w1, w2).grad_fn.name()
+        y = mlp2(xr, w1.clone().requires_grad_(), w2, backend="numba")
+        (gx,) = torch.autograd.grad(y.sum(), xr, create_graph=True)
+        assert gx.requires_grad  # differentiable again (SDF normals in a loss)
+    assert "Mlp2Fn" not in mlp2(xr, w1, w2, backend="torch").grad_fn.name()
+    assert torch.equal(mlp2(x.half(), w1.half(), w2.half()), mlp2_torch(x.half(), w1.half(), w2.half()))
+
+
+def test_nan_input_gives_nan_output_like_the_reference():
+    """A NaN point (the SLAM loop detects a failed step by its NaN loss) must not be silently zeroed by the ReLU."""
+    x, w1, w2, cot = _inputs(40)
+    x[3, 2] = float("nan")
+    out_r, grads_r = _grads("torch", x, w1, w2, cot)
+    out_f, grads_f = _grads("numba", x, w1, w2, cot)
+    assert torch.isnan(out_f[3]).all() and torch.isnan(out_r[3]).all()
+    torch.testing.assert_close(out_f, out_r, rtol=1e-5, atol=1e-5, equal_nan=True)
+    assert torch.isnan(grads_f[1]).any() == torch.isnan(grads_r[1]).any()
+
+
+def test_bad_input_errors():
+    x, w1, w2, _ = _inputs(10)
+    with pytest.raises(ValueError, match="do not chain"):
+        mlp2(x[:, :5], w1, w2)
+    with pytest.raises(ValueError, match="unknown decoder kernel"):
+        mlp2(x, w1, w2, backend="cuda")
+    with pytest.raises(ValueError, match="float32/float64"):
+        mlp2(x.half(), w1.half(), w2.half(), backend="numba")
+
+
+@pytest.mark.parametrize("encoding", ["dense", "hash+tri", "triplane", "tensorf"])
+def test_field_decoder_kernel_switch(encoding):
+    """`field.decoder_kernel` changes which implementation a field's grid decoders run, not what they compute."""
+    bounds = np.array([[-1.0, 1.0], [-1.0, 1.0], [-0.5, 0.5]])
+    pts = torch.rand(400, 3) * 1.8 - 0.9
+    pts[:, 2] *= 0.5
+    results = {}
+    for kernel in ("torch", "numba"):
+        torch.manual_seed(0)
+        field = build_field(FieldConfig(encoding=encoding, decoder_kernel=kernel, log2_hashmap_size=12), bounds)
+        out = field(pts)
+        node = out.sdf.grad_fn.next_functions[0][0]
+        if node.name() == "TanhBackward0":  # plane decoders: tanh on the SDF output; they stay in torch
+            assert node.next_functions[0][0].name() == "AddmmBackward0"
+        else:
+            assert (node.name() == "Mlp2FnBackward") == (kernel == "numba")
+        (out.sdf.sum() + out.rgb_logits.sum()).backward()
+        results[kernel] = (out.sdf.detach(), out.rgb_logits.detach(), field.sdf_net[0].weight.grad.clone())
+    for a, b in zip(results["torch"], results["numba"]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
