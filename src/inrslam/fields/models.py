@@ -8,7 +8,7 @@ gradient along the clamped axes), while the positional encoding γ sees the uncl
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, cast
 
 import numpy as np
 import torch
@@ -33,6 +33,15 @@ class FieldOutput(NamedTuple):
 def grid_decoder(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
     """"Grid decoder" (docs/spec.md §3.4): Linear(in→h) ReLU Linear(h→out), no biases."""
     return nn.Sequential(nn.Linear(in_dim, hidden, bias=False), nn.ReLU(), nn.Linear(hidden, out_dim, bias=False))
+
+
+def run_grid_decoder(net: nn.Sequential, x: torch.Tensor, backend: str) -> torch.Tensor:
+    """A `grid_decoder` on x (N, in) -> (N, out): backend "torch" runs the module itself (bit-for-bit as ever),
+    "numba" / "auto" the fused kernel `mlp2` (`field.decoder_kernel`)."""
+    if backend == "torch":
+        return net(x)
+    first, last = cast(nn.Linear, net[0]), cast(nn.Linear, net[2])
+    return mlp2(x, first.weight, last.weight, backend)
 
 
 def plane_decoder(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
@@ -80,12 +89,10 @@ class Field(nn.Module):
 
     def decode(self, net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
         """Decoder `net` on x (N, in) -> (N, out): grid decoders (Linear-ReLU-Linear, no biases) by
-        `field.decoder_kernel`, plane decoders (3 layers with biases) in torch. `torch` runs the module itself, so
-        that results stay bit-for-bit those of earlier versions."""
-        backend = KernelChoice(self.cfg.decoder_kernel).value
-        if len(net) != 3 or backend == "torch":
+        `field.decoder_kernel`, plane decoders (3 layers with biases) in torch."""
+        if len(net) != 3:
             return net(x)
-        return mlp2(x, net[0].weight, net[2].weight, backend)
+        return run_grid_decoder(net, x, KernelChoice(self.cfg.decoder_kernel).value)
 
 
 class EncoderField(Field):

@@ -3,16 +3,13 @@ decoded from one 2 cm dense feature level; colour decoded from the same features
 
 from __future__ import annotations
 
-from typing import cast
-
 import numpy as np
 import torch
 from torch import Tensor, nn
 
 from inrslam.fields.config import KernelChoice
 from inrslam.fields.encoders import GridEncoder
-from inrslam.fields.kernels.mlp import mlp2
-from inrslam.fields.models import FieldOutput, grid_decoder
+from inrslam.fields.models import FieldOutput, grid_decoder, run_grid_decoder
 from inrslam.slam.ehe.config import EheConfig
 from inrslam.slam.ehe.voxels import VoxelGrid
 
@@ -66,11 +63,8 @@ class EheField(nn.Module):
         return self._dec(self.sdf_net, torch.cat([f, p], dim=-1))[:, 0]
 
     def _dec(self, net: nn.Sequential, x: Tensor) -> Tensor:
-        """A Linear-ReLU-Linear decoder on x (N, in) -> (N, out), by `field.decoder_kernel` (torch: the module)."""
-        if self.decoder_kernel == "torch":
-            return net(x)
-        first, last = cast(nn.Linear, net[0]), cast(nn.Linear, net[2])
-        return mlp2(x, first.weight, last.weight, self.decoder_kernel)
+        """A Linear-ReLU-Linear decoder on x (N, in) -> (N, out), by `field.decoder_kernel`."""
+        return run_grid_decoder(net, x, self.decoder_kernel)
 
     def forward(self, x: Tensor) -> FieldOutput:
         p, f = self.encode(x)
