@@ -139,3 +139,15 @@ def test_field_decoder_kernel_switch(encoding):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
 
 
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs CUDA"))])
+def test_auto_runs_on_any_device_and_matches_the_reference(device):
+    """`auto` fuses CPU tensors and runs the reference elsewhere (GPU): the same values and input gradient."""
+    x, w1, w2, cot = (t.to(device) for t in _inputs(700))
+    out_a, grads_a = _grads("auto", x, w1, w2, cot)
+    out_r, grads_r = _grads("torch", x, w1, w2, cot)
+    assert out_a.device.type == device
+    torch.testing.assert_close(out_a, out_r, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(grads_a[0], grads_r[0], rtol=1e-4, atol=1e-4)
