@@ -134,6 +134,28 @@ def main() -> None:
             tr = timeit(encoder_fwd_bwd(tri_enc, x, "torch", wrt), args.reps)
             add(f"tri-plane 2x2 fwd+bwd->{wrt}", n, tf, tr)
 
+    # Grid decoders (7 -> 32 -> 1 and -> 3, no biases, `paper` settings): fused mlp2 vs autograd, forward + backward
+    # to the inputs only (tracking) and to inputs and weights (mapping).
+    from inrslam.fields.kernels.mlp import mlp2
+
+    for n in (61_440, 122_880):
+        x = torch.randn(n, 7)
+        for wrt in ("inputs", "params"):
+            ws = [torch.randn(32, 7) / 7 ** 0.5, torch.randn(1, 32) / 32 ** 0.5, torch.randn(3, 32) / 32 ** 0.5]
+            ws = [w.requires_grad_(wrt == "params") for w in ws]
+            xg = x.clone().requires_grad_()
+
+            def dec(kernel, xg=xg, ws=ws):
+                def run():
+                    xg.grad = None
+                    for w in ws:
+                        w.grad = None
+                    (mlp2(xg, ws[0], ws[1], kernel).sum() + mlp2(xg, ws[0], ws[2], kernel).sum()).backward()
+                return run
+
+            add(f"grid decoders 7-32-1/3 fwd+bwd->{wrt}", n, timeit(dec("numba"), args.reps),
+                timeit(dec("torch"), args.reps))
+
     # Dense 2-level grid (24 cm, 2 cm) on the 6 x 5 x 3 m box: full mapping step.
     for n in (61_440, 122_880):
         res = {}
@@ -184,7 +206,8 @@ def main() -> None:
             f"step peak +{res['numba'][1]:.0f} MiB fused ({res['numba'][1] / pm:.2f}x), "
             f"+{res['torch'][1]:.0f} MiB ref ({res['torch'][1] / pm:.2f}x)")
 
-    print("\ntargets: hash >= 10x (params and inputs), dense mapping step >= 4x with peak <= 2x params, tri-plane >= 2x")
+    print("\ntargets: hash >= 10x (params and inputs), dense mapping step >= 4x with peak <= 2x params, "
+          "tri-plane >= 2x; grid decoders: none (field.decoder_kernel, docs/speed.md)")
 
 
 if __name__ == "__main__":
