@@ -51,8 +51,9 @@ def open_dataset(cfg: DataConfig) -> RGBDDataset:
         name = cfg.path[len(BUILTIN_PREFIX) :]
         if cfg.dataset not in ("auto", "builtin"):
             raise ConfigError(f"data.dataset={cfg.dataset!r} does not apply to data.path={cfg.path!r} (use 'auto')")
-        if cfg.depth_scale is not None or cfg.intrinsics is not None:
-            raise ConfigError("data.depth_scale / data.intrinsics apply to folder datasets only, not builtin scenes")
+        if cfg.depth_scale is not None or cfg.intrinsics is not None or cfg.color_intrinsics is not None:
+            raise ConfigError("data.depth_scale / data.intrinsics / data.color_intrinsics apply to folder datasets "
+                              "only, not builtin scenes")
         base = load_scene(name, cfg.builtin)
     else:
         base = open_folder(absolute_path(cfg.path), cfg)  # absolute root and GT mesh in run_info.json

@@ -190,6 +190,15 @@ def test_7scenes_colour_is_resampled_into_the_depth_camera_when_its_intrinsics_a
         open_folder(lay.root, DataConfig(color_intrinsics=[0.0, 20.0, 15.5, 11.5]))
 
 
+def test_camera_overrides_on_a_builtin_scene_are_an_error_not_ignored():
+    from inrslam.datasets import open_dataset
+
+    for key, value in (("color_intrinsics", [20.0, 20.0, 15.5, 11.5]), ("intrinsics", [20.0, 20.0, 15.5, 11.5]),
+                       ("depth_scale", 1000.0)):
+        with pytest.raises(ConfigError, match=f"data.{key}.*folder datasets only"):
+            open_dataset(DataConfig(path="builtin:room", **{key: value}))
+
+
 def test_repeated_streams_names_what_repeats_bit_for_bit(tmp_path):
     import dataclasses
 
