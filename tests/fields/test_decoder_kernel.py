@@ -139,8 +139,6 @@ def test_field_decoder_kernel_switch(encoding):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
 
 
-
-
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs CUDA"))])
 def test_auto_runs_on_any_device_and_matches_the_reference(device):
