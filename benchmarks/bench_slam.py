@@ -16,12 +16,13 @@ import json
 import os
 import platform
 import time
+from collections.abc import Sequence
 
 ENCODINGS = ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+tri"]
 
 
 def run_one(encoding: str, kernel: str, frames: int, render: str, data: str, init_iters: int,
-            overrides: list[str] = (), decoder: str = "torch") -> dict:
+            overrides: Sequence[str] = (), decoder: str = "torch") -> dict:
     from inrslam.config import load_config
     from inrslam.datasets import open_dataset
     from inrslam.slam.system import SlamSystem

@@ -71,6 +71,7 @@ class Field(nn.Module):
         b = np.asarray(bounds, dtype=np.float64)
         self.register_buffer("bounds", torch.tensor(b, dtype=torch.float32))
         self.extent = b[:, 1] - b[:, 0]  # (3,) metres, float64 (resolution rules)
+        self.decoder_backend = KernelChoice(cfg.decoder_kernel).value  # grid decoders (`decode`)
 
     def normalise(self, x: torch.Tensor) -> torch.Tensor:
         """p̂ = (x − b_min)/(b_max − b_min), (N,3), not clamped."""
@@ -92,7 +93,7 @@ class Field(nn.Module):
         `field.decoder_kernel`, plane decoders (3 layers with biases) in torch."""
         if len(net) != 3:
             return net(x)
-        return run_grid_decoder(net, x, KernelChoice(self.cfg.decoder_kernel).value)
+        return run_grid_decoder(net, x, self.decoder_backend)
 
 
 class EncoderField(Field):

@@ -134,17 +134,9 @@ class Mlp2Fn(torch.autograd.Function):
         _backward(xc.numpy(), w1t.numpy(), w2c.numpy(), gy.detach().to(w1t.dtype).contiguous().numpy(), need_x,
                   need_w, gx, gw1t, gw2)
         gx_t = torch.from_numpy(gx) if need_x else None
-        gw1_t = torch.from_numpy(_sum_blocks(gw1t)).t().contiguous() if need_w1 else None
-        gw2_t = torch.from_numpy(_sum_blocks(gw2)) if need_w2 else None
+        gw1_t = torch.from_numpy(gw1t.sum(axis=0)).t().contiguous() if need_w1 else None  # blocks summed in
+        gw2_t = torch.from_numpy(gw2.sum(axis=0)) if need_w2 else None  # a fixed order: any thread count
         return gx_t, gw1_t, gw2_t
-
-
-def _sum_blocks(parts: np.ndarray) -> np.ndarray:
-    """(B, ...) -> (...) summed in block order (the same order on any thread count)."""
-    total = parts[0].copy() if len(parts) else np.zeros(parts.shape[1:], parts.dtype)
-    for p in parts[1:]:
-        total += p
-    return total
 
 
 def mlp2(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, backend: str = "auto") -> torch.Tensor:
