@@ -98,7 +98,7 @@ def _initialisation_status(system: SlamSystem) -> Iterator[None]:
     """Status of frame 0, the map's initialisation (`slam.init_iters` optimiser steps): counted by a post-step hook
     on one of the run's optimisers, removed afterwards. It only observes: the steps are the same with or without it."""
     total = int(system.cfg.slam.init_iters)
-    upto = "at most " if system.cfg.slam.init_stop_window > 0 else ""  # may end on a plateau
+    upto = "at most " if getattr(system.cfg.slam, "init_stop_window", 0) > 0 else ""  # may end on a plateau
     stage(log, f"initialising the map on frame 0 ({upto}{total} iterations; the first ones also load the numba "
                f"kernels)")
     optimizers = list(getattr(system.state, "optimizers", {}).values())
