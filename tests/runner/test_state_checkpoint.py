@@ -55,10 +55,12 @@ def test_state_round_trip_restores_every_field():
     # loop-closure bookkeeping (plain lists / dicts) comes back as equal copies, not shared objects
     a.state.loops.append({"candidate": 0, "frame": 2, "T": np.eye(4).tolist()})
     a.state.loop_stats["candidates"] = 3
+    a.state.kf_odometry[2] = np.eye(4).tolist()
     c = SlamSystem(cfg, open_dataset(cfg.data))
     c.state.load_state_dict(a.state.state_dict())
     assert c.state.loops == a.state.loops and c.state.loop_stats == {"candidates": 3}
     assert c.state.loop_stats is not a.state.loop_stats and c.state.loops is not a.state.loops
+    assert c.state.kf_odometry == {2: np.eye(4).tolist()} and c.state.kf_odometry is not a.state.kf_odometry
     # both continue identically from there
     assert [r["loss"] for r in a.process(3)] == [r["loss"] for r in b.process(3)]
     with pytest.raises(KeyError, match="lacks est"):

@@ -20,6 +20,7 @@ from inrslam.slam.loop_closure import (
     nearby_keyframes,
     overlap,
     path_length,
+    significant,
 )
 
 gtsam = pytest.importorskip("gtsam", reason="loop closure's pose graph needs gtsam (pip install gtsam)")
@@ -74,6 +75,24 @@ def test_a_loop_edge_removes_most_of_the_accumulated_drift():
     assert after[-1] < 0.1 * before[-1]  # the loop's end is put back
     assert np.sqrt(np.mean(after**2)) < 0.5 * np.sqrt(np.mean(before**2))  # and the drift is spread, not kept
     assert np.allclose(out[0], est[0], atol=1e-9)  # keyframe 0 fixed
+
+
+def test_tracked_odometry_keeps_a_rigid_move_from_becoming_odometry():
+    gt = circle(20)
+    est = drifted(gt, twist([0.0, 0.0, 0.004, 0.003, 0.0, 0.0]))
+    odometry = np.stack([pose_graph.relative(est[k], est[k + 1]) for k in range(19)])  # as tracked
+    loop = {"candidate": 0, "frame": 19, "T": pose_graph.relative(gt[0], gt[19])}
+    cfg = LoopConfig()
+    optimum = corrected_keyframes(est, list(range(20)), [loop], cfg)
+    # a closure moved the last 6 keyframes rigidly with the newest (the tracker's window): a kink at keyframe 14
+    kinked = optimum.copy()
+    kinked[14:] = (optimum[19] @ np.linalg.inv(est[19])) @ est[14:]
+    again = corrected_keyframes(kinked, list(range(20)), [loop], cfg, odometry)
+    assert pos_err(again, optimum).max() < 1e-5  # the same optimum, from wherever the poses were left
+    measured = corrected_keyframes(kinked, list(range(20)), [loop], cfg)  # odometry measured from the kinked poses
+    assert pos_err(measured, optimum).max() > 100 * pos_err(again, optimum).max()  # keeps part of the kink
+    with pytest.raises(ValueError, match="odometry edges"):
+        corrected_keyframes(est, list(range(20)), [loop], cfg, odometry[:5])
 
 
 def test_huber_kernel_limits_a_wrong_loop_edge():
@@ -169,6 +188,38 @@ def test_verifications_that_disagree_are_ambiguous():
     c = near(2, twist([-0.3, 0, 0, 0, 0, 0]))  # x = 0.7: another place
     assert consistent([a, b], est, 0.05) and not consistent([a, c], est, 0.05) and consistent([a], est, 0.05)
     assert isinstance(Candidate(1, 0.1, 2.0).overlap, float)
+
+
+def test_a_first_loop_must_correct_more_than_the_verification_error():
+    cfg = LoopConfig(min_correction=0.005, min_gap=100)
+    small = Verification(5, True, None, np.eye(4), 0.6, 0.003, 0.2, 0.3)  # 3 mm: within a verification's own error
+    large = Verification(5, True, None, np.eye(4), 0.6, 0.011, 0.0, 0.3)
+    assert not significant(small, [], cfg) and significant(large, [], cfg)
+    # once a loop edge onto a nearby candidate exists, the loop is closed there: small corrections keep it closed
+    assert significant(small, [{"candidate": 0, "frame": 270}], cfg)
+    assert not significant(small, [{"candidate": 200, "frame": 400}], cfg)  # a different place
+    assert significant(small, [], LoopConfig(min_correction=0.0))  # off
+
+
+def test_color_disagreement_is_lowest_at_the_true_relative_pose():
+    from inrslam.config import load_config
+    from inrslam.datasets import open_dataset
+    from inrslam.slam.loop_closure import color_disagreement
+    from inrslam.slam.photometric import grey
+
+    cfg = load_config(preset="accurate", overrides=["data.path=builtin:loop", "data.builtin.frames=12",
+                                                    "data.builtin.width=96", "data.builtin.height=72"])
+    ds = open_dataset(cfg.data)
+    a, b = ds[0], ds[8]
+    true = np.linalg.solve(a.c2w, b.c2w)  # b's camera in a's
+    ga, gb = grey(a.rgb), grey(b.rgb)
+    assert color_disagreement(b.depth, gb, gb, np.eye(4), b.intrinsics) < 1e-12  # a view onto itself
+    at_true = color_disagreement(b.depth, gb, ga, true, b.intrinsics, stride=1)
+    for off in ([0.03, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0.02, 0]):  # 3 cm, about 1 degree
+        assert at_true < 0.8 * color_disagreement(b.depth, gb, ga, twist(off) @ true, b.intrinsics, stride=1)
+    away = np.eye(4)
+    away[:3, 3] = [0.0, 0.0, -100.0]  # everything behind the destination camera
+    assert np.isnan(color_disagreement(b.depth, gb, ga, away, b.intrinsics))
 
 
 def test_frames_follow_their_keyframes_rigidly():
@@ -282,8 +333,33 @@ def test_closure_fires_at_the_revisit_of_the_loop_scene_and_brings_the_end_back(
     assert m["loops_closed"] == len(closed) and m["loop_edges"] == edges[-1]["edges"]
     assert m["loop_verified"] >= m["loop_edges"] and m["loop_candidates"] >= m["loop_verified"]
     assert m["loop_ms_per_frame"] > 0
+    final = _records(loop_run, "loop_final")  # after the last frame, every frame follows its own keyframe
+    assert [r["frame"] for r in final] == [119] and final[0]["edges"] == m["loop_edges"]
     _, est = read_tum(loop_run / "trajectory.txt")
     _, gt = read_tum(loop_run / "trajectory_gt.txt")
     err = np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
     # the closure moved the closing keyframe towards where it really is: it is now closer than the move was long
     assert err[c["frame"]] < c["correction_m"]
+
+
+def test_interrupted_loop_closure_run_resumes_to_the_uninterrupted_result(loop_run, tmp_path):
+    from inrslam.config import load_config
+    from inrslam.runner import resume_slam, run_slam
+    from inrslam.runner.checkpoint import load_checkpoint
+
+    out = tmp_path / "interrupted"
+    first = _records(loop_run, "loop_edge") + _records(loop_run, "loop_closed")
+    stop_at = min(r["frame"] for r in first) + 5  # after the first loop edge and a checkpoint (every 5 frames)
+
+    def stop(i, n, info):
+        if i == stop_at:
+            raise KeyboardInterrupt
+
+    cfg = load_config(preset="accurate", overrides=["data.path=builtin:loop", "slam.loop_closure=true", *LOOP_RUN,
+                                                    "slam.checkpoint_every=5"])
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(cfg, out, progress=stop)
+    saved = load_checkpoint(out / "checkpoints" / "latest.pt")
+    assert saved["loops"] and saved["kf_odometry"]  # the graph's edges travel with the checkpoint
+    resume_slam(out)
+    assert (out / "trajectory.txt").read_text() == (loop_run / "trajectory.txt").read_text()

@@ -138,8 +138,12 @@ class LoopConfig:
     max_correction_per_m: float = 0.05  # ... this per metre travelled since the candidate (a drift bound)
     max_correction_angle: float = 10.0  # degrees a loop may turn the keyframe
     consistency: float = 0.05  # metres: verified candidates placing the keyframe further apart are ambiguous (rejected)
+    min_correction: float = 0.005  # metres: a loop onto a place with no loop edge yet must move the keyframe at least
+    # this much (smaller: within the verification's own error, the edge would only add it; 0 = off)
+    color_check: bool = True  # a verified loop must explain the two views' colour better than the current estimate
+    # does (the keyframe's pixels warped into the candidate: a cue independent of the depth registration)
     refit_min_move: float = 0.01  # metres: re-fit the map once the corrections since the last re-fit (the largest
-    # keyframe move of each) add up to this, and at the last keyframe
+    # keyframe move of each) add up to this (also after the last frame's graph)
     odom_sigma_t: float = 0.01  # pose-graph std of an odometry edge (consecutive keyframes), metres ...
     odom_sigma_r: float = 0.005  # ... and radians
     loop_sigma_t: float = 0.01  # std of a loop edge, metres ...

@@ -1,5 +1,6 @@
 """Loop closure for the keyframes of the SLAM loop (docs/loop_closure.md): detection by geometric overlap,
-verification by two-stage GICP with a drift bound and an ambiguity check, and the pose-graph correction.
+verification by coarse-to-fine GICP with a drift bound, a significance test, a colour check and an ambiguity check,
+and the pose-graph correction.
 
 Pure numpy (depth images and poses in, decisions and poses out); the loop (`slam.system`) reads the frames and
 applies the result. Poses are float64 c2w (4, 4), OpenCV axes, metres.
@@ -42,6 +43,32 @@ def overlap(points_cam: np.ndarray, T_w_src: np.ndarray, T_w_dst: np.ndarray, de
     d = depth_dst[vi[inside], ui[inside]]
     hit = (d > 0) & (np.abs(d - z[ok][inside]) < tol)
     return float(hit.sum()) / points_cam.shape[0]
+
+
+def color_disagreement(depth_src: np.ndarray, grey_src: np.ndarray, grey_dst: np.ndarray, T_dst_src: np.ndarray,
+                        intr, stride: int = 4) -> float:
+    """Mean |grey_dst(pi(T X)) - grey_src(p)| over the source's valid depth pixels p (every `stride`-th row and
+    column) back-projected to X and moved into the destination camera by `T_dst_src` (4, 4), of those landing
+    inside its image (bilinear); grey in [0, 1], images (H, W). NaN when none lands. How well a relative pose
+    explains two views' colour: 0 for a view warped onto itself by the identity."""
+    from scipy.ndimage import map_coordinates
+
+    from inrslam.geometry.pinhole import backproject_np
+
+    d = np.asarray(depth_src, dtype=np.float64)
+    vv, uu = np.mgrid[0:d.shape[0]:stride, 0:d.shape[1]:stride]
+    sub = d[::stride, ::stride]
+    ok = np.isfinite(sub) & (sub > 0)
+    X = backproject_np(d, intr.fx, intr.fy, intr.cx, intr.cy, stride=stride)  # the same pixels, row-major
+    q = X @ T_dst_src[:3, :3].T + T_dst_src[:3, 3]
+    u, v, z = project_np(q, intr.fx, intr.fy, intr.cx, intr.cy)
+    H, W = grey_dst.shape
+    inside = (z > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    if not inside.any():
+        return float("nan")
+    g_src = np.asarray(grey_src, dtype=np.float64)[vv[ok], uu[ok]][inside]
+    g_dst = map_coordinates(np.asarray(grey_dst, dtype=np.float64), [v[inside], u[inside]], order=1)
+    return float(np.abs(g_dst - g_src).mean())
 
 
 @dataclass
@@ -122,6 +149,17 @@ def verify(cand: PreparedCloud, cur: PreparedCloud, T_w_cand: np.ndarray, T_w_cu
     return Verification(frame, ok, None if ok else "correction", T, reg.fitness, corr_m, ang, bound)
 
 
+def significant(v: Verification, loops: list[dict], cfg: LoopConfig) -> bool:
+    """Whether a verified loop is worth an edge: it moves the keyframe at least `cfg.min_correction` metres, or its
+    candidate lies within `cfg.min_gap` frames of a candidate that already has a loop edge (that loop is closed:
+    further edges keep it closed). A first loop onto a place that corrects less than the verification's own error
+    would only add that error to a trajectory that had not drifted there. Example: min_correction 5 mm, no edges
+    yet, a 3 mm correction -> False; an edge onto frame 0 exists and this candidate is frame 5 -> True."""
+    if v.correction >= cfg.min_correction:
+        return True
+    return any(abs(int(lp["candidate"]) - v.frame) < cfg.min_gap for lp in loops)
+
+
 def consistent(verified: list[Verification], est: np.ndarray, tol: float) -> bool:
     """Whether the accepted verifications place the current keyframe within `tol` metres of each other (more than
     one place that fits equally: an ambiguous, repeated-structure match)."""
@@ -129,12 +167,21 @@ def consistent(verified: list[Verification], est: np.ndarray, tol: float) -> boo
     return all(np.linalg.norm(p - pos[0]) <= tol for p in pos[1:])
 
 
-def corrected_keyframes(kf_poses: np.ndarray, kf_ids: list[int], loops: list[dict], cfg: LoopConfig) -> np.ndarray:
-    """Pose-graph optimisation of the keyframes (K, 4, 4) c2w: odometry edges between consecutive keyframes (from
-    their current poses) and every loop `{"candidate": frame, "frame": frame, "T": (4, 4) candidate <- current}`;
-    keyframe 0 fixed. Returns the corrected (K, 4, 4) poses."""
+def corrected_keyframes(kf_poses: np.ndarray, kf_ids: list[int], loops: list[dict], cfg: LoopConfig,
+                        odometry: np.ndarray | None = None) -> np.ndarray:
+    """Pose-graph optimisation of the keyframes (K, 4, 4) c2w: odometry edges between consecutive keyframes and
+    every loop `{"candidate": frame, "frame": frame, "T": (4, 4) candidate <- current}`; keyframe 0 fixed. The
+    odometry edges are `odometry` (K - 1, 4, 4), each keyframe's pose relative to the one before as tracked, or,
+    without it, measured from the current poses (then a correction that moved a run of keyframes rigidly is taken
+    for odometry by every later optimisation). Starts from `kf_poses`; returns the corrected (K, 4, 4) poses."""
     slot = {f: k for k, f in enumerate(kf_ids)}
-    edges = pose_graph.odometry_edges(kf_poses, cfg.odom_sigma_t, cfg.odom_sigma_r)
+    if odometry is None:
+        edges = pose_graph.odometry_edges(kf_poses, cfg.odom_sigma_t, cfg.odom_sigma_r)
+    else:
+        if len(odometry) != len(kf_poses) - 1:
+            raise ValueError(f"{len(odometry)} odometry edges for {len(kf_poses)} keyframes")
+        edges = [pose_graph.Edge(k, k + 1, np.asarray(T, dtype=np.float64), cfg.odom_sigma_t, cfg.odom_sigma_r)
+                 for k, T in enumerate(odometry)]
     edges += [pose_graph.Edge(slot[lp["candidate"]], slot[lp["frame"]], np.asarray(lp["T"], dtype=np.float64),
                               cfg.loop_sigma_t, cfg.loop_sigma_r, cfg.huber) for lp in loops]
     return pose_graph.optimise(kf_poses, edges, fixed=0)

@@ -57,6 +57,11 @@ class PhotoResult:
     light: tuple[float, float] | None = None  # affine brightness (alpha, beta) (slam.photo.affine_light)
 
 
+def grey(rgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3) colour in [0, 1] -> (H, W) float64 grey level (ITU-R 601 luma weights `LUMA`)."""
+    return np.asarray(rgb, dtype=np.float64) @ np.asarray(LUMA)
+
+
 def _gradients(img: Tensor) -> tuple[Tensor, Tensor]:
     """Central differences (H, W) along u and v; 0 on the border."""
     gu, gv = torch.zeros_like(img), torch.zeros_like(img)
@@ -84,7 +89,7 @@ def build_pyramid(rgb: np.ndarray, depth: np.ndarray, K: tuple[float, float, flo
                   levels: int) -> list[PhotoLevel]:
     """(H, W, 3) colour in [0, 1] and (H, W) depth in metres (0 = invalid) -> `levels` levels, finest first.
     A level's intrinsics: f / 2 and (c + 0.5) / 2 - 0.5 (pixel centres at integers)."""
-    g = torch.as_tensor(np.asarray(rgb, dtype=np.float64) @ np.asarray(LUMA))
+    g = torch.as_tensor(grey(rgb))
     d = torch.as_tensor(np.asarray(depth, dtype=np.float64))
     d = torch.where(torch.isfinite(d) & (d > 0), d, torch.zeros_like(d))
     fx, fy, cx, cy = (float(v) for v in K)

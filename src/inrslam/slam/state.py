@@ -18,7 +18,7 @@ from inrslam.slam.keyframes import KeyframeStore
 
 # fields a checkpoint from an older version may lack, with how to fill them in
 _OPTIONAL = {"rel", "rel_kf", "gicp_kfs", "photo_kfs", "photo_shifts", "photo_kf_rms", "track_losses", "lost_run",
-             "loops", "loop_stats"}
+             "loops", "loop_stats", "kf_odometry"}
 
 
 @dataclass(eq=False)
@@ -45,6 +45,9 @@ class SlamState:
         lost_run: consecutive lost frames up to now.
         loops: accepted loop closures, `{"candidate": frame, "frame": frame, "T": (4, 4) list}` (slam.loop_closure);
         loop_stats: counts and times of loop closure (candidates, verified, rejected, accepted, ms).
+        kf_odometry: each keyframe's c2w (4, 4) list in the odometry frame: the previous keyframe's moved by the
+            tracked motion between them when it was added, whatever loops did to the poses since (the pose graph's
+            odometry edges; slam.loop_closure).
     """
 
     model: torch.nn.Module
@@ -71,6 +74,7 @@ class SlamState:
     lost_run: int = 0
     loops: list[dict] = field(default_factory=list)
     loop_stats: dict[str, float] = field(default_factory=dict)
+    kf_odometry: dict[int, list] = field(default_factory=dict)
 
     @classmethod
     def fresh(cls, model: torch.nn.Module, optimizers: dict, store: KeyframeStore, generator: torch.Generator,

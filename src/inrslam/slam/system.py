@@ -22,18 +22,20 @@ from inrslam.slam.config import GicpConfig, GicpTarget, MeshConfig, PoseInit, Sl
 from inrslam.slam.frame_tensors import FrameTensors
 from inrslam.slam.keyframes import KeyframeStore
 from inrslam.slam.loop_closure import (
+    color_disagreement,
     consistent,
     corrected_keyframes,
     follow_keyframes,
     nearby_keyframes,
     overlap,
     path_length,
+    significant,
     verify,
 )
 from inrslam.slam.mapping import initialise, map_frame, refit
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import ModelConfig, SceneModel
-from inrslam.slam.photometric import PhotoLevel, align_photometric, build_pyramid, jump_kept, step_bound
+from inrslam.slam.photometric import PhotoLevel, align_photometric, build_pyramid, grey, jump_kept, step_bound
 from inrslam.slam.poses import constant_velocity, relative_trajectory
 from inrslam.slam.registration import (
     PreparedCloud,
@@ -273,6 +275,8 @@ class SlamSystem:
         self._log(rec)
         if i % cfg.map_every == 0:
             self._map(i, ft)
+        if cfg.loop_closure and i == self.n_frames - 1 and self.state.loops:
+            self._finish_loops(i)
 
     def _map_frame(self, frame: Frame, smooth: np.ndarray) -> Frame:
         """The frame the map learns from: `frame`, or with `smooth`, its depth after slam.gicp's filter
@@ -558,11 +562,78 @@ class SlamSystem:
                 pick = torch.randperm(edges.numel(), generator=self.generator)[:m].to(edges.device)
                 idx = torch.cat([idx, edges[pick]])
         self.store.add(i, *ft.rays(idx), behind=ft.behind_of(idx))
-        if cfg.loop_closure and self.given is None and i > 0:
-            t0 = time.perf_counter()
-            self._close_loop(i, ft.frame)
-            st = self.state.loop_stats
-            st["ms"] = st.get("ms", 0.0) + (time.perf_counter() - t0) * 1e3
+        if cfg.loop_closure and self.given is None:
+            self._record_odometry(i)
+            if i > 0:
+                t0 = time.perf_counter()
+                self._close_loop(i, ft.frame)
+                st = self.state.loop_stats
+                st["ms"] = st.get("ms", 0.0) + (time.perf_counter() - t0) * 1e3
+
+    def _record_odometry(self, i: int) -> None:
+        """Keyframe i's pose in the odometry frame (`state.kf_odometry`): the previous keyframe's there, moved by
+        the tracked motion between the two now, when i is added; the pose graph's odometry edge stays as measured
+        however loops move the poses later. A chain starts at the current pose (the first keyframe, or after a
+        resume from a checkpoint without it)."""
+        s = self.state
+        ids = self.store.frame_ids
+        T_i = s.est[i].double().cpu().numpy()
+        prev = ids[-2] if len(ids) >= 2 else None
+        if prev is None or prev not in s.kf_odometry:
+            s.kf_odometry[i] = T_i.tolist()
+            return
+        rel = np.linalg.solve(s.est[prev].double().cpu().numpy(), T_i)
+        s.kf_odometry[i] = (np.asarray(s.kf_odometry[prev]) @ rel).tolist()
+
+    def _odometry_edges(self, kf_ids: list[int], est: np.ndarray) -> np.ndarray:
+        """(K - 1, 4, 4) relative poses of consecutive keyframes as tracked (`kf_odometry`), or from `est` (N, 4, 4)
+        where a keyframe has none."""
+        odo = self.state.kf_odometry
+        out = []
+        for a, b in zip(kf_ids[:-1], kf_ids[1:]):
+            if a in odo and b in odo:
+                out.append(np.linalg.solve(np.asarray(odo[a]), np.asarray(odo[b])))
+            else:
+                out.append(np.linalg.solve(est[a], est[b]))
+        return np.stack(out) if out else np.zeros((0, 4, 4))
+
+    def _optimise_graph(self, i: int, est: np.ndarray, rigid_from: int | None) -> np.ndarray:
+        """Pose graph of the keyframes up to frame i (tracked odometry + `state.loops`); frames 0..i follow their
+        keyframes (from `rigid_from` on, rigidly with the newest). Updates `state.est`; returns how far (m) each
+        keyframe moved."""
+        s = self.state
+        kf_ids = list(self.store.frame_ids)
+        old_kf = est[kf_ids]
+        new_kf = corrected_keyframes(old_kf, kf_ids, s.loops, self.cfg.slam.loop, self._odometry_edges(kf_ids, est))
+        new_est = follow_keyframes(est, old_kf, new_kf, kf_ids, s.rel_kf, i, rigid_from=rigid_from)
+        s.est[: i + 1] = torch.as_tensor(new_est[: i + 1], dtype=s.est.dtype, device=s.est.device)
+        self._local_target = None  # the GICP local map sits at the old poses
+        return np.linalg.norm(new_kf[:, :3, 3] - old_kf[:, :3, 3], axis=1)
+
+    def _refit(self) -> list[float]:
+        """Re-fit the map from every keyframe's stored rays at their current poses (slam.loop.refit_*)."""
+        lc, s = self.cfg.slam.loop, self.state
+        s.loop_stats["unfitted_m"] = 0.0
+        return refit(self.model, s.optimizers, self.store, self.est[list(self.store.frame_ids)], lc.refit_iters,
+                     lc.refit_pixels, self.generator)
+
+    def _finish_loops(self, i: int) -> None:
+        """After the last frame i of a run with loop edges: the pose graph once more with every frame following its
+        own keyframe (no tracking follows, so the tracker's local map need not keep its shape), and a re-fit of the
+        map if the keyframes' moves since the last one add up to `refit_min_move`, as during the run."""
+        s = self.state
+        t0 = time.perf_counter()
+        moved = self._optimise_graph(i, s.est[: i + 1].double().cpu().numpy(), rigid_from=None)
+        rec = {"type": "loop_final", "frame": i, "edges": len(s.loops),
+               "keyframes_moved_max_m": round(float(moved.max()), 5), "graph_ms": (time.perf_counter() - t0) * 1e3}
+        s.loop_stats["unfitted_m"] = s.loop_stats.get("unfitted_m", 0.0) + float(moved.max())
+        if s.loop_stats["unfitted_m"] > self.cfg.slam.loop.refit_min_move:
+            t1 = time.perf_counter()
+            losses = self._refit()
+            rec.update(refit_ms=(time.perf_counter() - t1) * 1e3, refit_loss_first=losses[0] if losses else None,
+                       refit_loss_last=losses[-1] if losses else None)
+        s.loop_stats["ms"] = s.loop_stats.get("ms", 0.0) + (time.perf_counter() - t0) * 1e3
+        self._log(rec)
 
     def _close_loop(self, i: int, frame: Frame) -> None:
         """Loop closure at the new keyframe i (slam.loop, docs/loop_closure.md): older keyframes near its estimated
@@ -578,9 +649,10 @@ class SlamSystem:
         if not near:
             return
         points = depth_points(frame.depth, frame.intrinsics, g)
-        depths = {c.frame: self.dataset[c.frame].depth for c in near}
+        frames = {c.frame: self.dataset[c.frame] for c in near}
         for c in near:
-            c.overlap = overlap(points, est[i], est[c.frame], depths[c.frame], frame.intrinsics, lc.overlap_tol)
+            c.overlap = overlap(points, est[i], est[c.frame], frames[c.frame].depth, frame.intrinsics,
+                                lc.overlap_tol)
         cands = sorted([c for c in near if c.overlap >= lc.min_overlap], key=lambda c: -c.overlap)[: lc.candidates]
         st["candidates"] = st.get("candidates", 0) + len(cands)
         if not cands:
@@ -588,10 +660,21 @@ class SlamSystem:
         cur = PreparedCloud(points, g)
         verified = []
         for c in cands:
-            v = verify(prepare_depth(depths[c.frame], frame.intrinsics, g), cur, est[c.frame], est[i],
+            v = verify(prepare_depth(frames[c.frame].depth, frame.intrinsics, g), cur, est[c.frame], est[i],
                        path_length(est, c.frame, i), c.frame, g, lc)
+            color = {}
+            if v.ok and not significant(v, s.loops, lc):
+                v = dataclasses.replace(v, ok=False, reason="small_correction")
+            if v.ok and lc.color_check:
+                grey_k, grey_c = grey(frame.rgb), grey(frames[c.frame].rgb)
+                loop_e = color_disagreement(frame.depth, grey_k, grey_c, v.T_cand_cur, frame.intrinsics)
+                est_e = color_disagreement(frame.depth, grey_k, grey_c, np.linalg.solve(est[c.frame], est[i]),
+                                            frame.intrinsics)
+                color = {"color_loop": round(loop_e, 5), "color_estimate": round(est_e, 5)}
+                if not loop_e < est_e:  # (NaN: no overlap to judge by)
+                    v = dataclasses.replace(v, ok=False, reason="color")
             self._log({"type": "loop_candidate", "frame": i, "distance_m": round(c.distance, 4),
-                       "angle_deg": round(c.angle, 2), "overlap": round(c.overlap, 4), **v.record()})
+                       "angle_deg": round(c.angle, 2), "overlap": round(c.overlap, 4), **v.record(), **color})
             if v.ok:
                 verified.append(v)
         st["verified"] = st.get("verified", 0) + len(verified)
@@ -605,27 +688,20 @@ class SlamSystem:
         best = max(verified, key=lambda v: v.fitness)
         s.loops += [{"candidate": v.frame, "frame": i, "T": v.T_cand_cur.tolist()} for v in verified]
         t0 = time.perf_counter()
-        old_kf = est[kf_ids]
-        new_kf = corrected_keyframes(old_kf, kf_ids, s.loops, lc)
         window = (s.gicp_kfs[-g.local_map_keyframes:][0] if self.cfg.slam.init is PoseInit.GICP
                   and g.target is GicpTarget.LOCAL_MAP else None)
-        new_est = follow_keyframes(est, old_kf, new_kf, kf_ids, s.rel_kf, i, rigid_from=window)
+        moved = self._optimise_graph(i, est, rigid_from=window)
         graph_ms = (time.perf_counter() - t0) * 1e3
-        s.est[: i + 1] = torch.as_tensor(new_est, dtype=s.est.dtype, device=s.est.device)
-        self._local_target = None  # the GICP local map sits at the old poses
-        moved = np.linalg.norm(new_kf[:, :3, 3] - old_kf[:, :3, 3], axis=1)
         rec = {"type": "loop_edge", "frame": i, "candidate": best.frame, "fitness": round(best.fitness, 4),
                "correction_m": round(best.correction, 5), "edges": len(s.loops),
                "keyframes_moved_max_m": round(float(moved.max()), 5),
                "keyframes_moved_mean_m": round(float(moved.mean()), 5), "graph_ms": graph_ms}
-        # keyframe motion the map has not been re-fitted to yet; re-fit once it exceeds refit_min_move, and at the
-        # run's last keyframe, so that the final map matches the final poses
+        # keyframe motion the map has not been re-fitted to yet; re-fit once it exceeds refit_min_move (after the
+        # last frame `_finish_loops` adds its own move and applies the same rule)
         st["unfitted_m"] = st.get("unfitted_m", 0.0) + float(moved.max())
-        if st["unfitted_m"] > lc.refit_min_move or i + self.cfg.slam.map_every >= self.n_frames:
-            st["unfitted_m"] = 0.0
+        if st["unfitted_m"] > lc.refit_min_move:
             t0 = time.perf_counter()
-            losses = refit(self.model, s.optimizers, self.store, self.est[kf_ids], lc.refit_iters, lc.refit_pixels,
-                           self.generator)
+            losses = self._refit()
             st["closures"] = st.get("closures", 0) + 1
             rec.update(type="loop_closed", refit_ms=(time.perf_counter() - t0) * 1e3,
                        refit_loss_first=losses[0] if losses else None, refit_loss_last=losses[-1] if losses else None)
