@@ -121,9 +121,10 @@ class LostConfig:
 @dataclass
 class LoopConfig:
     """Loop closure (`slam.loop.*`, on with `slam.loop_closure`; docs/loop_closure.md). At every new keyframe:
-    detect keyframes seen long before whose view overlaps it, verify them by GICP, add the verified loop edge to a
-    pose graph of the keyframes (GTSAM), move the keyframes (their frames follow), and re-fit the map from the ray
-    store once the corrections since the last re-fit add up to `refit_min_move`."""
+    detect keyframes seen long before whose view overlaps it, verify them by GICP (with a drift bound, a significance
+    test and a colour check), add the verified loop edge to a pose graph of the keyframes (GTSAM; odometry edges as
+    tracked), move the keyframes (their frames follow), and re-fit the map from the ray store once the corrections
+    since the last re-fit add up to `refit_min_move`."""
 
     min_gap: int = 100  # frames between a keyframe and an older keyframe it may close a loop with
     max_dist: float = 0.8  # metres between their camera centres (current estimates) for a candidate ...
