@@ -225,12 +225,19 @@ def test_gicp_prior_changes_the_photometric_refinement_only_when_set(noisy, tmp_
     assert (out / "trajectory.txt").read_text() != (noisy / "trajectory.txt").read_text()
 
 
-def test_new_photometric_keyframes_are_placed_by_several_older_ones_when_asked(tmp_path_factory):
-    # a keyframe on every frame (kf_rms_factor < 1); with kf_refs 3 each new one is also aligned onto the two
-    # keyframes before its reference and its pose averaged with them
-    renew = NOISY + ["slam.photo.kf_rms_factor=0.5"]
-    one = tracks(run(tmp_path_factory, "kf_refs1", "accurate", renew))
-    out = run(tmp_path_factory, "kf_refs3", "accurate", renew + ["slam.photo.kf_refs=3"])
+RENEW = NOISY + ["slam.photo.kf_rms_factor=0.5"]  # a photometric keyframe on every frame (kf_rms_factor < 1)
+
+
+@pytest.fixture(scope="module")
+def kf_refs3(tmp_path_factory):
+    """With kf_refs 3 each new photometric keyframe is also aligned onto the two keyframes before its reference and
+    its pose averaged with them."""
+    return run(tmp_path_factory, "kf_refs3", "accurate", RENEW + ["slam.photo.kf_refs=3"])
+
+
+def test_new_photometric_keyframes_are_placed_by_several_older_ones_when_asked(tmp_path_factory, kf_refs3):
+    one = tracks(run(tmp_path_factory, "kf_refs1", "accurate", RENEW))
+    out = kf_refs3
     three = tracks(out)
     assert all("photo_kf_refs" not in r for r in one)
     # frame 1's reference is keyframe 0 alone; from frame 2 on older keyframes exist (at most 2 more)
@@ -244,10 +251,9 @@ def test_new_photometric_keyframes_are_placed_by_several_older_ones_when_asked(t
     assert np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1).max() < 0.03  # still tracks (noisy depth)
 
 
-def test_interrupted_run_with_averaged_photometric_keyframes_resumes_exactly(tmp_path_factory, tmp_path):
-    over = SMALL + NOISY + ["slam.photo.kf_rms_factor=0.5", "slam.photo.kf_refs=3"]
-    whole = tmp_path_factory.mktemp("kf_refs_whole") / "run"
-    run_slam(load_config(preset="accurate", overrides=over), whole)
+def test_interrupted_run_with_averaged_photometric_keyframes_resumes_exactly(kf_refs3, tmp_path):
+    over = SMALL + RENEW + ["slam.photo.kf_refs=3"]  # kf_refs3's settings
+    whole = kf_refs3
     out = tmp_path / "interrupted"
 
     def stop_after_frame_4(i, n, info):
