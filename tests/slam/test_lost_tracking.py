@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -13,7 +15,9 @@ from inrslam.slam.system import SlamSystem
 BASE = ["data.max_frames=4", "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false"]
 
 
+@functools.cache
 def run(*overrides: str) -> SlamSystem:
+    """A finished run with these overrides (shared by the tests, which only read it)."""
     cfg = load_config(preset="quick", overrides=BASE + list(overrides))
     return SlamSystem(cfg, open_dataset(cfg.data)).run()
 
