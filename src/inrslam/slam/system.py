@@ -658,6 +658,7 @@ class SlamSystem:
         if not cands:
             return
         cur = PreparedCloud(points, g)
+        grey_k = grey(frame.rgb) if lc.color_check else None  # the keyframe's grey image, for every candidate
         verified = []
         for c in cands:
             v = verify(prepare_depth(frames[c.frame].depth, frame.intrinsics, g), cur, est[c.frame], est[i],
@@ -665,8 +666,8 @@ class SlamSystem:
             color = {}
             if v.ok and not significant(v, s.loops, lc):
                 v = dataclasses.replace(v, ok=False, reason="small_correction")
-            if v.ok and lc.color_check:
-                grey_k, grey_c = grey(frame.rgb), grey(frames[c.frame].rgb)
+            if v.ok and grey_k is not None:
+                grey_c = grey(frames[c.frame].rgb)
                 loop_e = color_disagreement(frame.depth, grey_k, grey_c, v.T_cand_cur, frame.intrinsics)
                 est_e = color_disagreement(frame.depth, grey_k, grey_c, np.linalg.solve(est[c.frame], est[i]),
                                             frame.intrinsics)
