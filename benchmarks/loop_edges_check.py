@@ -39,6 +39,9 @@ def main() -> None:
     print("| run | loop edges | max error [cm] | max error [deg] | median [cm] |")
     print("|:--|--:|--:|--:|--:|")
     for run in args.runs:
+        if not (run / "checkpoints" / "latest.pt").is_file():
+            print(f"| {run.name} | not a finished run directory with a checkpoint (skipped) | | | |")
+            continue
         e = edge_errors(run)
         if not e:
             print(f"| {run.name} | 0 | — | — | — |")

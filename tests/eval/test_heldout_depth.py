@@ -76,3 +76,19 @@ def test_heldout_depth_setting_is_validated():
     assert HeldoutDepth(cfg.eval.heldout_depth) is HeldoutDepth.SURFACE
     with pytest.raises(Exception, match="heldout_depth"):
         load_config(preset="paper", overrides=["eval.heldout_depth=median"])
+
+
+def test_heldout_frames_spread_over_the_whole_sequence():
+    from inrslam.eval.heldout import heldout_frames
+
+    short = heldout_frames(200, 10, 20, offset=2)
+    assert short == list(range(2, 200, 10))  # 20 candidates: all of them
+    picked = heldout_frames(320, 10, 20, offset=2)
+    assert len(picked) == 20 and picked[0] == 2 and picked[-1] == 312  # the first and the last candidate ...
+    assert all(f % 10 == 2 for f in picked) and picked == sorted(set(picked))  # ... and only candidates
+    gaps = np.diff(picked)
+    assert gaps.min() >= 10 and gaps.max() <= 20  # evenly between: 31 steps of 10 over 19 gaps
+    assert heldout_frames(400, 10, 5, offset=2) == [2, 102, 202, 292, 392]
+    assert heldout_frames(320, 10, 1, offset=2) == [2]
+    assert heldout_frames(320, 10, 0) == [] and heldout_frames(0, 10, 20) == [] and heldout_frames(5, 0, 20) == []
+    assert heldout_frames(5, 10, 20, offset=8) == [4]  # the offset clipped to the last frame

@@ -206,12 +206,21 @@ def test_map_learns_filtered_depth_only_when_asked_and_only_on_noisy_depth():
                 assert mapped is frame
 
 
-def test_photometric_keyframe_is_renewed_when_its_residual_grows(noisy, tmp_path_factory):
+RENEW = NOISY + ["slam.photo.kf_rms_factor=0.5"]  # a photometric keyframe on every frame (kf_rms_factor < 1)
+
+
+@pytest.fixture(scope="module")
+def renew(tmp_path_factory):
+    """A photometric keyframe on every frame: every refinement's RMS exceeds 0.5 times the first one onto its
+    reference (one run for the two tests reading it)."""
+    return run(tmp_path_factory, "renew", "accurate", RENEW)
+
+
+def test_photometric_keyframe_is_renewed_when_its_residual_grows(noisy, renew):
     # default (kf_rms_factor 0): 5 frames of `handheld` stay on the first photometric keyframe (< 30 cm, < 25 deg)
     assert [r["photo_target"] for r in tracks(noisy)] == [0, 0, 0, 0]
     # a factor below 1: every refinement's RMS exceeds it times the first one onto the reference -> renewed each frame
-    out = run(tmp_path_factory, "photo_rms", "accurate", NOISY + ["slam.photo.kf_rms_factor=0.5"])
-    recs = tracks(out)
+    recs = tracks(renew)
     assert [r["photo_target"] for r in recs] == [r["frame"] - 1 for r in recs]
     assert all("fallback" not in r for r in recs)
 
@@ -225,9 +234,6 @@ def test_gicp_prior_changes_the_photometric_refinement_only_when_set(noisy, tmp_
     assert (out / "trajectory.txt").read_text() != (noisy / "trajectory.txt").read_text()
 
 
-RENEW = NOISY + ["slam.photo.kf_rms_factor=0.5"]  # a photometric keyframe on every frame (kf_rms_factor < 1)
-
-
 @pytest.fixture(scope="module")
 def kf_refs3(tmp_path_factory):
     """With kf_refs 3 each new photometric keyframe is also aligned onto the two keyframes before its reference and
@@ -235,8 +241,8 @@ def kf_refs3(tmp_path_factory):
     return run(tmp_path_factory, "kf_refs3", "accurate", RENEW + ["slam.photo.kf_refs=3"])
 
 
-def test_new_photometric_keyframes_are_placed_by_several_older_ones_when_asked(tmp_path_factory, kf_refs3):
-    one = tracks(run(tmp_path_factory, "kf_refs1", "accurate", RENEW))
+def test_new_photometric_keyframes_are_placed_by_several_older_ones_when_asked(renew, kf_refs3):
+    one = tracks(renew)  # kf_refs 1
     out = kf_refs3
     three = tracks(out)
     assert all("photo_kf_refs" not in r for r in one)

@@ -134,13 +134,29 @@ def test_candidates_are_old_near_and_facing_the_same_way():
 @pytest.fixture(scope="module")
 def clouds():
     pytest.importorskip("small_gicp", reason="loop verification needs small_gicp")
-    from inrslam.slam.registration import prepare_depth
+    from inrslam.slam.loop_closure import stage_clouds
+    from inrslam.slam.registration import depth_points
 
     g = GicpConfig(pixel_stride=1)
     T_cand = look_at((0.3, 0.2, 1.2), (2.0, 1.0, 0.6))
     T_cur = T_cand @ twist([0.02, -0.01, 0.01, 0.03, -0.02, 0.01])
-    return g, T_cand, T_cur, {name: prepare_depth(plane_depth(CORNER, T), INTR, g)
+    return g, T_cand, T_cur, {name: stage_clouds(depth_points(plane_depth(CORNER, T), INTR, g), g, LoopConfig())
                               for name, T in (("cand", T_cand), ("cur", T_cur))}
+
+
+def test_stage_clouds_are_coarse_then_fine(clouds):
+    from inrslam.slam.loop_closure import stage_clouds, verify
+    from inrslam.slam.registration import depth_points
+
+    g, T_cand, T_cur, c = clouds
+    coarse, mid, fine = c["cur"]
+    assert coarse is mid and 0 < coarse.size < fine.size / 3  # 5 cm voxels: the coarse stages share fewer points
+    pts = depth_points(plane_depth(CORNER, T_cur), INTR, g)
+    same = stage_clouds(pts, g, LoopConfig(coarse_downsample=0.0))
+    assert [cl.size for cl in same] == [fine.size] * 3
+    assert len(stage_clouds(pts, g, LoopConfig(corr_stages=[0.05]))) == 1
+    with pytest.raises(ValueError, match="3 verification stages"):
+        verify(c["cand"][:1], c["cur"], T_cand, T_cur, 1.0, 7, g, LoopConfig())
 
 
 def test_verification_accepts_a_true_revisit_despite_drift(clouds):
@@ -169,12 +185,12 @@ def test_verification_rejects_a_twin_view_beyond_the_drift_bound(clouds):
 
 def test_verification_rejects_a_single_wall():
     pytest.importorskip("small_gicp", reason="loop verification needs small_gicp")
-    from inrslam.slam.loop_closure import verify
-    from inrslam.slam.registration import prepare_depth
+    from inrslam.slam.loop_closure import stage_clouds, verify
+    from inrslam.slam.registration import depth_points
 
     g = GicpConfig(pixel_stride=1)
     T = look_at((0.0, 0.0, 1.2), (2.0, 0.0, 1.2))
-    wall = prepare_depth(plane_depth(WALL, T), INTR, g)
+    wall = stage_clouds(depth_points(plane_depth(WALL, T), INTR, g), g, LoopConfig())
     v = verify(wall, wall, T, T, 5.0, 3, g, LoopConfig())
     assert not v.ok and v.reason == "coarse_degenerate"  # the wide stage already sees a one-wall view
 
@@ -335,6 +351,8 @@ def test_closure_fires_at_the_revisit_of_the_loop_scene_and_brings_the_end_back(
     assert m["loop_ms_per_frame"] > 0
     final = _records(loop_run, "loop_final")  # after the last frame, every frame follows its own keyframe
     assert [r["frame"] for r in final] == [119] and final[0]["edges"] == m["loop_edges"]
+    # the map follows the final graph when the keyframe moves it has not been re-fitted to exceed refit_final_move
+    assert ("refit_ms" in final[0]) == (final[0]["unfitted_m"] > 0.001)
     _, est = read_tum(loop_run / "trajectory.txt")
     _, gt = read_tum(loop_run / "trajectory_gt.txt")
     err = np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)

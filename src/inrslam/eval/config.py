@@ -41,7 +41,7 @@ class EvalConfig:
     cull_gt: bool = False  # also cull the GT mesh with the same cameras (unseen GT regions then do not count)
     enabled: bool = True  # evaluate at the end of a SLAM run
     heldout_every: int = 10  # held-out full-frame renders of every N-th frame (PSNR/SSIM/depth L1; 0 = off)
-    heldout_max: int = 20  # at most this many held-out renders
+    heldout_max: int = 20  # at most this many held-out renders, spread over the sequence when there are more
     heldout_samples: int = 96  # uniform samples per ray used to find the surface in held-out renders
     heldout_refine: int = 0  # > 0: held-out surface search looks again with this many samples inside each of the first
     # intervals that may hold a thin surface the uniform samples stepped over (0 = off, the paper's search)

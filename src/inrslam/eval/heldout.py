@@ -32,10 +32,25 @@ def heldout_panel(gt_rgb: np.ndarray, rgb: np.ndarray, depth: np.ndarray, gt_dep
     return (panel * 255.0 + 0.5).astype(np.uint8)
 
 
+def heldout_frames(n: int, every: int, max_frames: int, offset: int = 0) -> list[int]:
+    """Frame indices of the held-out renders of an n-frame sequence: offset, offset + every, ... (offset clipped to
+    the last frame); when there are more than `max_frames`, `max_frames` of them evenly spread from the first to
+    the last, so that the whole sequence is judged, not its beginning. Example: n=320, every=10, max 20, offset 2:
+    2, 12, ..., 312 are 32 candidates; picked: 2, 22, 32, 52, ..., 292, 312 (the first, the last and 18 evenly
+    between)."""
+    cand = list(range(min(offset, n - 1), n, every)) if n > 0 and every > 0 else []
+    if max_frames <= 0 or len(cand) <= max_frames:
+        return cand if max_frames > 0 else []
+    if max_frames == 1:
+        return cand[:1]
+    return [cand[round(k * (len(cand) - 1) / (max_frames - 1))] for k in range(max_frames)]
+
+
 def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: int, offset: int = 0,
                     sink: Callable[[int, np.ndarray], None] | None = None) -> dict:
-    """PSNR / SSIM / depth L1 of frames offset, offset + every, ... (at most `max_frames`); an offset between
-    keyframes keeps the evaluated frames out of the keyframe ray store.
+    """PSNR / SSIM / depth L1 of the frames `heldout_frames` picks (offset, offset + every, ..., at most
+    `max_frames` of them spread over the sequence); an offset between keyframes keeps them out of the keyframe ray
+    store.
 
     Args:
         render: (c2w (4,4) tensor, intrinsics) -> (rgb (H,W,3) in [0,1], depth (H,W) metres), tensors or arrays.
@@ -46,7 +61,7 @@ def heldout_metrics(render: Callable, dataset, poses, every: int, max_frames: in
         dict(psnr_db, ssim, depth_l1_m, heldout_frames), and depth_l1_true_m (against the noise-free depth,
         `true_depth_of`) when the dataset knows it (the built-in scenes).
     """
-    idx = list(range(min(offset, len(dataset) - 1), len(dataset), every))[:max_frames]
+    idx = heldout_frames(len(dataset), every, max_frames, offset)
     ps, ss, dl, dt = [], [], [], []
     for k, i in enumerate(idx):
         frame = dataset[i]

@@ -134,6 +134,10 @@ class LoopConfig:
     candidates: int = 3  # the best candidates by overlap that are verified (each verified one is a loop edge)
     corr_stages: list[float] = field(default_factory=lambda: [0.25, 0.1, 0.05])  # metres, GICP correspondence
     # distance of each verification stage, coarse to fine (each starts where the previous ended)
+    coarse_downsample: float = 0.05  # metres: voxel size of the clouds of the coarse stages (all but the last; the
+    # last uses slam.gicp.downsample; 0 = that for every stage)
+    epsilon: float = 1e-4  # a verification stage has converged once a GICP step moves less than this (metres and
+    # radians)
     min_fitness: float = 0.45  # final-stage inlier fraction of the keyframe's points (earlier stages: 0.3)
     max_correction: float = 0.05  # metres a loop may move the keyframe, plus ...
     max_correction_per_m: float = 0.05  # ... this per metre travelled since the candidate (a drift bound)
@@ -144,7 +148,9 @@ class LoopConfig:
     color_check: bool = True  # a verified loop must explain the two views' colour better than the current estimate
     # does (the keyframe's pixels warped into the candidate: a cue independent of the depth registration)
     refit_min_move: float = 0.01  # metres: re-fit the map once the corrections since the last re-fit (the largest
-    # keyframe move of each) add up to this (also after the last frame's graph)
+    # keyframe move of each) add up to this
+    refit_final_move: float = 0.001  # metres: the same rule after the last frame's graph (one re-fit per run, so a
+    # smaller threshold: on `symmetric` 2 edges moved keyframes by <= 4 mm and left the map unfitted to them)
     odom_sigma_t: float = 0.01  # pose-graph std of an odometry edge (consecutive keyframes), metres ...
     odom_sigma_r: float = 0.005  # ... and radians
     loop_sigma_t: float = 0.01  # std of a loop edge, metres ...

@@ -30,6 +30,7 @@ from inrslam.slam.loop_closure import (
     overlap,
     path_length,
     significant,
+    stage_clouds,
     verify,
 )
 from inrslam.slam.mapping import initialise, map_frame, refit
@@ -620,14 +621,16 @@ class SlamSystem:
     def _finish_loops(self, i: int) -> None:
         """After the last frame i of a run with loop edges: the pose graph once more with every frame following its
         own keyframe (no tracking follows, so the tracker's local map need not keep its shape), and a re-fit of the
-        map if the keyframes' moves since the last one add up to `refit_min_move`, as during the run."""
+        map if the keyframes' moves since the last one add up to `refit_final_move` (a re-fit now is paid once,
+        not once per loop: a smaller threshold than the run's `refit_min_move`)."""
         s = self.state
         t0 = time.perf_counter()
         moved = self._optimise_graph(i, s.est[: i + 1].double().cpu().numpy(), rigid_from=None)
         rec = {"type": "loop_final", "frame": i, "edges": len(s.loops),
                "keyframes_moved_max_m": round(float(moved.max()), 5), "graph_ms": (time.perf_counter() - t0) * 1e3}
         s.loop_stats["unfitted_m"] = s.loop_stats.get("unfitted_m", 0.0) + float(moved.max())
-        if s.loop_stats["unfitted_m"] > self.cfg.slam.loop.refit_min_move:
+        rec["unfitted_m"] = round(s.loop_stats["unfitted_m"], 5)
+        if s.loop_stats["unfitted_m"] > self.cfg.slam.loop.refit_final_move:
             t1 = time.perf_counter()
             losses = self._refit()
             rec.update(refit_ms=(time.perf_counter() - t1) * 1e3, refit_loss_first=losses[0] if losses else None,
@@ -640,7 +643,7 @@ class SlamSystem:
         pose whose depth overlaps its view are candidates; the best are verified by GICP; unless they disagree, each
         verified one is a loop edge of the keyframe pose graph, whose optimum moves every keyframe (frames follow
         their keyframes, the tracker's local map rigidly); once the moves since the last re-fit exceed
-        `refit_min_move` (or at the last keyframe), the map is re-fitted (a closure)."""
+        `refit_min_move`, the map is re-fitted (a closure; after the last frame, `_finish_loops`)."""
         lc, g, s = self.cfg.slam.loop, self.cfg.slam.gicp, self.state
         st = s.loop_stats
         kf_ids = list(self.store.frame_ids)
@@ -657,12 +660,12 @@ class SlamSystem:
         st["candidates"] = st.get("candidates", 0) + len(cands)
         if not cands:
             return
-        cur = PreparedCloud(points, g)
+        cur = stage_clouds(points, g, lc)
         grey_k = grey(frame.rgb) if lc.color_check else None  # the keyframe's grey image, for every candidate
         verified = []
         for c in cands:
-            v = verify(prepare_depth(frames[c.frame].depth, frame.intrinsics, g), cur, est[c.frame], est[i],
-                       path_length(est, c.frame, i), c.frame, g, lc)
+            cand = stage_clouds(depth_points(frames[c.frame].depth, frame.intrinsics, g), g, lc)
+            v = verify(cand, cur, est[c.frame], est[i], path_length(est, c.frame, i), c.frame, g, lc)
             color = {}
             if v.ok and not significant(v, s.loops, lc):
                 v = dataclasses.replace(v, ok=False, reason="small_correction")
@@ -698,7 +701,7 @@ class SlamSystem:
                "keyframes_moved_max_m": round(float(moved.max()), 5),
                "keyframes_moved_mean_m": round(float(moved.mean()), 5), "graph_ms": graph_ms}
         # keyframe motion the map has not been re-fitted to yet; re-fit once it exceeds refit_min_move (after the
-        # last frame `_finish_loops` adds its own move and applies the same rule)
+        # last frame `_finish_loops` adds its own move and re-fits above refit_final_move)
         st["unfitted_m"] = st.get("unfitted_m", 0.0) + float(moved.max())
         if st["unfitted_m"] > lc.refit_min_move:
             t0 = time.perf_counter()
