@@ -359,3 +359,30 @@ def test_closure_fires_at_the_revisit_of_the_loop_scene_and_brings_the_end_back(
     # the closure moved the closing keyframe towards where it really is: it is now closer than the move was long
     assert err[c["frame"]] < c["correction_m"]
 
+
+
+def test_interrupted_loop_closure_run_resumes_to_the_uninterrupted_result(loop_run, tmp_path):
+    from inrslam.config import load_config
+    from inrslam.runner import resume_slam, run_slam
+    from inrslam.runner.checkpoint import load_checkpoint
+
+    out = tmp_path / "interrupted"
+    first = _records(loop_run, "loop_edge") + _records(loop_run, "loop_closed")
+    stop_at = min(r["frame"] for r in first) + 5  # after the first loop edge and a checkpoint (every 5 frames)
+
+    def stop(i, n, info):
+        if i == stop_at:
+            raise KeyboardInterrupt
+
+    cfg = load_config(preset="accurate", overrides=["data.path=builtin:loop", "slam.loop_closure=true", *LOOP_RUN,
+                                                    "slam.checkpoint_every=5"])
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(cfg, out, progress=stop)
+    saved = load_checkpoint(out / "checkpoints" / "latest.pt")
+    assert saved["loops"] and saved["kf_odometry"]  # the graph's edges travel with the checkpoint
+    resume_slam(out)
+    assert (out / "trajectory.txt").read_text() == (loop_run / "trajectory.txt").read_text()
+    # the last frame's graph pass and its re-fit ran once, after the resume, as in the uninterrupted run
+    (mine,), (theirs,) = _records(out, "loop_final"), _records(loop_run, "loop_final")
+    assert mine["frame"] == 119 and mine["edges"] == theirs["edges"] and mine["unfitted_m"] == theirs["unfitted_m"]
+    assert ("refit_ms" in mine) == ("refit_ms" in theirs)
