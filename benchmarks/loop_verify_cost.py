@@ -5,7 +5,8 @@
 
 Takes every (keyframe, candidate) pair a loop-closure run verified (`loop_candidate` records of its `log.jsonl`;
 the run's config gives the scene and settings), starts GICP from the ground-truth relative pose perturbed by a
-random drift (`--perturb-cm`, `--perturb-deg`, seeded), and verifies it with `slam.loop.verify` under each setting:
+random drift (`--perturb-cm`, `--perturb-deg`, seeded), and verifies it (`inrslam.slam.loop_closure.verify`)
+under each setting:
 `before` (every stage on the tracker's cloud, converged at the tracker's `slam.gicp.eps_*`: the verification before
 `slam.loop.coarse_downsample` / `slam.loop.epsilon`) and `now` (the run's own). Prints, per setting, the pairs
 accepted (GICP's checks and the drift bound, here for 1 m travelled: 10 cm), how many of those are true (< 1 cm

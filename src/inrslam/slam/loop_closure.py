@@ -126,7 +126,7 @@ def stage_clouds(points: np.ndarray, gicp: GicpConfig, cfg: LoopConfig) -> list[
     """A keyframe's camera-frame points (N, 3) prepared for each verification stage (`cfg.corr_stages`): the coarse
     stages (all but the last) share one cloud on a `cfg.coarse_downsample`-metre voxel grid (0: the tracker's
     `gicp.downsample`), the last stage uses `gicp.downsample`. A coarse stage only has to bring a drift of centimetres
-    within reach of the next; on a quarter of the points it costs a fifth."""
+    within reach of the next; on the built-in scenes the 5 cm cloud keeps ~30 % of the 2 cm cloud's points."""
     fine = PreparedCloud(points, gicp)
     if len(cfg.corr_stages) <= 1:
         return [fine] * len(cfg.corr_stages)
