@@ -7,8 +7,10 @@ from __future__ import annotations
 import base64
 import itertools
 import json
+import os
 import re
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -52,9 +54,13 @@ def load_page(url: str, ready_js: str, size: tuple[int, int] = (1000, 700), time
 
     if CHROMIUM is None:
         raise RuntimeError("chromium is not installed (apt-get install -y chromium)")
-    with tempfile.TemporaryDirectory(prefix="inrslam-chromium-") as profile:
+    # chromium's helper processes (renderer, GPU, zygote) may still write into the profile after the main one is
+    # gone: it runs in its own process group, the whole group is killed, and a file written in that last instant
+    # does not fail the test when the profile is removed
+    with tempfile.TemporaryDirectory(prefix="inrslam-chromium-", ignore_cleanup_errors=True) as profile:
         proc = subprocess.Popen([CHROMIUM, *FLAGS, f"--user-data-dir={profile}", f"--window-size={size[0]},{size[1]}",
-                                 "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                                 "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                start_new_session=True)
         try:
             port = _devtools_port(proc, timeout)
             with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:
@@ -62,7 +68,10 @@ def load_page(url: str, ready_js: str, size: tuple[int, int] = (1000, 700), time
             with connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10) as ws:
                 return _drive(ws, url, ready_js, size, timeout, then_js)
         finally:
-            proc.kill()
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
             proc.wait(timeout=10)
 
 
