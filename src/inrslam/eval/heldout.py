@@ -39,8 +39,10 @@ def heldout_frames(n: int, every: int, max_frames: int, offset: int = 0) -> list
     2, 12, ..., 312 are 32 candidates; picked: 2, 22, 32, 52, ..., 292, 312 (the first, the last and 18 evenly
     between)."""
     cand = list(range(min(offset, n - 1), n, every)) if n > 0 and every > 0 else []
-    if max_frames <= 0 or len(cand) <= max_frames:
-        return cand if max_frames > 0 else []
+    if max_frames <= 0:
+        return []
+    if len(cand) <= max_frames:
+        return cand
     if max_frames == 1:
         return cand[:1]
     return [cand[round(k * (len(cand) - 1) / (max_frames - 1))] for k in range(max_frames)]

@@ -611,12 +611,16 @@ class SlamSystem:
         self._local_target = None  # the GICP local map sits at the old poses
         return np.linalg.norm(new_kf[:, :3, 3] - old_kf[:, :3, 3], axis=1)
 
-    def _refit(self) -> list[float]:
-        """Re-fit the map from every keyframe's stored rays at their current poses (slam.loop.refit_*)."""
+    def _refit(self) -> dict[str, Any]:
+        """Re-fit the map from every keyframe's stored rays at their current poses (slam.loop.refit_*); returns its
+        log fields (time, first and last loss)."""
         lc, s = self.cfg.slam.loop, self.state
         s.loop_stats["unfitted_m"] = 0.0
-        return refit(self.model, s.optimizers, self.store, self.est[list(self.store.frame_ids)], lc.refit_iters,
-                     lc.refit_pixels, self.generator)
+        t0 = time.perf_counter()
+        losses = refit(self.model, s.optimizers, self.store, self.est[list(self.store.frame_ids)], lc.refit_iters,
+                       lc.refit_pixels, self.generator)
+        return {"refit_ms": (time.perf_counter() - t0) * 1e3, "refit_loss_first": losses[0] if losses else None,
+                "refit_loss_last": losses[-1] if losses else None}
 
     def _finish_loops(self, i: int) -> None:
         """After the last frame i of a run with loop edges: the pose graph once more with every frame following its
@@ -631,10 +635,7 @@ class SlamSystem:
         s.loop_stats["unfitted_m"] = s.loop_stats.get("unfitted_m", 0.0) + float(moved.max())
         rec["unfitted_m"] = round(s.loop_stats["unfitted_m"], 5)
         if s.loop_stats["unfitted_m"] > self.cfg.slam.loop.refit_final_move:
-            t1 = time.perf_counter()
-            losses = self._refit()
-            rec.update(refit_ms=(time.perf_counter() - t1) * 1e3, refit_loss_first=losses[0] if losses else None,
-                       refit_loss_last=losses[-1] if losses else None)
+            rec.update(self._refit())
         s.loop_stats["ms"] = s.loop_stats.get("ms", 0.0) + (time.perf_counter() - t0) * 1e3
         self._log(rec)
 
@@ -704,11 +705,8 @@ class SlamSystem:
         # last frame `_finish_loops` adds its own move and re-fits above refit_final_move)
         st["unfitted_m"] = st.get("unfitted_m", 0.0) + float(moved.max())
         if st["unfitted_m"] > lc.refit_min_move:
-            t0 = time.perf_counter()
-            losses = self._refit()
+            rec.update(type="loop_closed", **self._refit())
             st["closures"] = st.get("closures", 0) + 1
-            rec.update(type="loop_closed", refit_ms=(time.perf_counter() - t0) * 1e3,
-                       refit_loss_first=losses[0] if losses else None, refit_loss_last=losses[-1] if losses else None)
         self._log(rec)
 
     # -- results ---------------------------------------------------------------------------------------------------
