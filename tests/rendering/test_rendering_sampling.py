@@ -170,3 +170,17 @@ def test_cpu_jitter_draws_unchanged():
         lower, upper = torch.cat([z[:, :1], mid], 1), torch.cat([mid, z[:, -1:]], 1)
         j = stratified_jitter(z, torch.Generator().manual_seed(7))
         assert torch.equal(j, lower + u * (upper - lower))
+
+
+def test_distinct_indices_are_distinct_in_range_and_uniform():
+    from inrslam.rendering.sampling import distinct_indices
+
+    g = torch.Generator().manual_seed(0)
+    hits = torch.zeros(1000)
+    for _ in range(400):
+        idx = distinct_indices(1000, 100, g)  # the draw-and-deduplicate branch (100 <= 1000 / 4)
+        assert idx.numel() == 100 and idx.unique().numel() == 100 and idx.min() >= 0 and idx.max() < 1000
+        hits[idx] += 1
+    # each index drawn with probability 0.1: 40 expected in 400 draws, std 6; every one within 6 std
+    assert (hits - 40).abs().max() < 36 and abs(hits.mean().item() - 40) < 1e-9
+    assert distinct_indices(10, 10, g).sort().values.tolist() == list(range(10))

@@ -25,7 +25,7 @@ def test_optimise_ends_early_on_the_rule_and_runs_all_iterations_without_it():
     class Model:
         def loss(self, *args):
             v = next(losses)
-            return {"total": p * 0 + v, "mse": torch.tensor(0.01), "depth_l1": torch.tensor(0.0)}, None
+            return {"total": p * 0 + v, "mse": torch.tensor(0.01), "depth_l1": torch.tensor(0.0)}
 
     opt = {"field": torch.optim.SGD([p], lr=0.1)}
     batch = lambda: (None, None, None, None)  # noqa: E731

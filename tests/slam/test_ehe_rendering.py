@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from inrslam.slam.ehe.config import EheConfig
-from inrslam.slam.ehe.losses import ehe_losses, sdf_terms
+from inrslam.slam.ehe.losses import ehe_losses, packed_sdf_terms, sdf_terms
 from inrslam.slam.ehe.model import EheModel
-from inrslam.slam.ehe.raymarch import sample_in_voxels, voxel_hits
-from inrslam.slam.ehe.rendering import EheRender, fill_padding, masked_direct_weights
+from inrslam.slam.ehe.raymarch import packed_samples_in_voxels, sample_in_voxels, voxel_hits
+from inrslam.slam.ehe.rendering import EheRender, fill_padding, masked_direct_weights, packed_direct_weights
 from inrslam.slam.ehe.voxels import VoxelGrid
 
 UNIT = np.array([[0.0, 1.0], [0.0, 1.0], [0.0, 1.0]])
@@ -89,17 +89,73 @@ def test_ehe_losses_are_l1_on_hit_rays_with_the_configured_weights():
     cfg = EheConfig()
     z = torch.tensor([[1.0, 1.01], [1.0, 1.0], [2.0, 2.0]])
     valid = torch.tensor([[True, True], [False, False], [True, True]])
+    slot = torch.nonzero(valid.reshape(-1)).reshape(-1)
     out = EheRender(rgb=torch.tensor([[0.5, 0.5, 0.5], [0.0, 0.0, 0.0], [0.2, 0.2, 0.2]]),
-                    depth=torch.tensor([1.005, 0.0, 2.0]), hit=valid.any(1), sdf=torch.zeros(3, 2), z=z,
-                    valid=valid, weights=torch.full((3, 2), 0.5))
+                    depth=torch.tensor([1.005, 0.0, 2.0]), hit=valid.any(1), sdf=torch.zeros(4),
+                    z=z.reshape(-1)[slot], ray=slot // 2, weights=torch.full((4,), 0.5), slot=slot, width=2)
     rgb = torch.tensor([[0.6, 0.5, 0.3], [1.0, 1.0, 1.0], [0.2, 0.2, 0.2]])
     depth = torch.tensor([1.0, 1.0, 0.0])  # ray 1 misses every voxel: no loss; ray 2 has no depth
     l = ehe_losses(out, rgb, depth, cfg)
     assert l["rgb"].item() == pytest.approx((0.1 + 0.0 + 0.2) / 6)
     assert l["depth"].item() == pytest.approx(0.005, rel=1e-4)
-    fs, sd = sdf_terms(out.sdf, z, valid & torch.tensor([True, False, False])[:, None], depth, cfg.truncation)
+    fs, sd = sdf_terms(torch.zeros(3, 2), z, valid & torch.tensor([True, False, False])[:, None], depth,
+                       cfg.truncation)
     assert l["total"].item() == pytest.approx(5 * l["rgb"].item() + 0.005 + 10 * fs.item() + 5e4 * sd.item(),
                                               rel=1e-5)
+
+
+def random_padded_rays(seed: int, R: int = 40, S: int = 12, dtype=torch.float64):
+    """Rays with 0..S leading valid samples (sorted z, SDF crossing zero on many rays), padded as the sampler does:
+    sdf (R, S) requiring grad, z (R, S), valid (R, S), depth (R,), has_depth (R,)."""
+    g = torch.Generator().manual_seed(seed)
+    count = torch.randint(0, S + 1, (R,), generator=g)
+    valid = torch.arange(S)[None, :] < count[:, None]
+    z = 0.5 + torch.cumsum(torch.rand(R, S, generator=g, dtype=dtype) * 0.02, dim=1)
+    z = fill_padding(z, valid)
+    sdf = (torch.rand(R, 1, generator=g, dtype=dtype) * 2 - 0.5) - 3.0 * (z - z[:, :1])  # falls along the ray
+    sdf = sdf + 0.05 * torch.randn(R, S, generator=g, dtype=dtype)
+    depth = z[:, :1].squeeze(1) + torch.rand(R, generator=g, dtype=dtype) * 0.2
+    has_depth = torch.rand(R, generator=g) < 0.8
+    return fill_padding(sdf, valid).requires_grad_(), z, valid, depth, has_depth
+
+
+def packed(values, valid):
+    return values.reshape(-1)[torch.nonzero(valid.reshape(-1)).reshape(-1)]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_packed_weights_and_sdf_terms_match_the_padded_reference(seed):
+    sdf, z, valid, depth, has_depth = random_padded_rays(seed)
+    R, S = z.shape
+    ray = torch.nonzero(valid.reshape(-1)).reshape(-1) // S
+    T = 0.05
+    ref_w = masked_direct_weights(sdf, z, valid, T)
+    ref_fs, ref_sd = sdf_terms(sdf, z, valid & has_depth[:, None], depth, T)
+    s = packed(sdf, valid)
+    w = packed_direct_weights(s, packed(z, valid), ray, R, T)
+    fs, sd = packed_sdf_terms(s, packed(z, valid), ray, depth, has_depth, T)
+    assert torch.allclose(w, packed(ref_w, valid), atol=1e-12) and (ref_w[~valid] == 0).all()
+    assert torch.allclose(fs, ref_fs, atol=1e-12) and torch.allclose(sd, ref_sd, atol=1e-12)
+    # gradients with respect to the SDF of the valid samples
+    coef = torch.randn(R, S, generator=torch.Generator().manual_seed(seed + 10), dtype=sdf.dtype)
+    g_ref, = torch.autograd.grad((ref_w * coef).sum() + ref_fs + 3 * ref_sd, sdf)
+    g, = torch.autograd.grad((w * packed(coef, valid)).sum() + fs + 3 * sd, s)
+    assert torch.allclose(g, packed(g_ref, valid), atol=1e-10)
+
+
+def test_packed_weights_gradcheck():
+    sdf, z, valid, _, _ = random_padded_rays(5, R=6, S=8)
+    ray = torch.nonzero(valid.reshape(-1)).reshape(-1) // 8
+    s = packed(sdf, valid).detach().requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: packed_direct_weights(x, packed(z, valid), ray, 6, 0.05), (s,))
+
+
+def test_a_render_packs_its_samples_and_pads_them_back():
+    sdf, z, valid, _, _ = random_padded_rays(7, R=5, S=6, dtype=torch.float32)
+    slot = torch.nonzero(valid.reshape(-1)).reshape(-1)
+    out = EheRender(rgb=torch.zeros(5, 3), depth=torch.zeros(5), hit=valid.any(1), sdf=packed(sdf, valid),
+                    z=packed(z, valid), ray=slot // 6, weights=packed(sdf, valid), slot=slot, width=6)
+    assert torch.equal(out.padded(out.z), z) and torch.equal(out.padded(out.sdf.detach()), sdf.detach())
 
 
 def test_a_plane_prior_renders_the_planes_depth():
@@ -158,3 +214,18 @@ def test_voxel_hits_match_a_brute_force_march_on_random_voxels():
         assert n[r] == len(ref)
         got = np.stack([t_in[r, :n[r]], t_out[r, :n[r]]], 1)
         assert np.allclose(got, np.array(ref).reshape(-1, 2), atol=3e-4)
+
+
+def test_packed_samples_are_the_padded_samples_valid_ones_with_their_points():
+    g = torch.Generator().manual_seed(3)
+    vg = VoxelGrid(UNIT, 0.1)
+    vg.allocated[:] = torch.rand(vg.allocated.numel(), generator=g) < 0.3
+    o = torch.rand(50, 3, generator=g) * 0.8 + 0.1
+    d = torch.randn(50, 3, generator=g)
+    pad = sample_in_voxels(vg, o, d, 0.01, 10, 1.5, torch.Generator().manual_seed(9))
+    pk = packed_samples_in_voxels(vg, o, d, 0.01, 10, 1.5, torch.Generator().manual_seed(9))
+    slot = torch.nonzero(pad.valid.reshape(-1)).reshape(-1)
+    assert torch.equal(pk.z, pad.z.reshape(-1)[slot]) and torch.equal(pk.ray, slot // pad.z.shape[1])
+    assert pk.start.tolist() == [0, *torch.cumsum(pad.valid.sum(1), 0).tolist()]
+    assert torch.allclose(pk.points, o[pk.ray] + pk.z[:, None] * d[pk.ray], atol=1e-6)
+    assert pk.z.numel() > 100

@@ -144,3 +144,16 @@ def test_the_field_is_prior_plus_residual_and_its_fused_first_layer_equals_the_t
     p = field.normalise(x)
     assert torch.allclose(out.rgb_logits, field.rgb_net(torch.cat([p, field.grid(p)], 1)), atol=1e-5)
     assert all(m.bias is None for m in (*field.sdf_net[::2], *field.rgb_net[::2]))
+
+
+def test_point_stats_kernel_matches_the_torch_reference_on_random_points():
+    g = torch.Generator().manual_seed(0)
+    vg = VoxelGrid(np.array([[-0.5, 1.0], [0.0, 0.7], [0.2, 1.3]]), 0.1)
+    pts = torch.rand(20000, 3, generator=g) * 2.0 - 0.4  # about half of them outside the box
+    counts, sums = vg.point_stats(pts)
+    ref_counts, ref_sums = vg.point_stats_torch(pts)
+    assert torch.equal(counts, ref_counts) and 0 < counts.sum() < 20000
+    assert torch.allclose(sums, ref_sums, atol=2e-4)
+    occ = counts > 0
+    mean = sums[occ] / counts[occ, None]
+    assert (mean >= 0).all() and (mean < 1).all()

@@ -123,6 +123,21 @@ def sample_depths(
     return z
 
 
+def distinct_indices(total: int, n: int, generator: torch.Generator | None = None) -> Tensor:
+    """n distinct integers of [0, total), every n-subset equally likely, in random order (CPU, int64 (n,)).
+
+    Cheaper than a full permutation when n is small against total: draws ~1.25 n with replacement, keeps the
+    distinct values (a uniformly random subset of their number, by symmetry) and takes a random n of them,
+    drawing again in the rare case that fewer than n are distinct. A permutation when n > total / 4.
+    """
+    if n > total // 4:
+        return torch.randperm(total, generator=generator)[:n]
+    while True:
+        distinct = torch.unique(torch.randint(0, total, (n + n // 4 + 16,), generator=generator))
+        if distinct.numel() >= n:
+            return distinct[torch.randperm(distinct.numel(), generator=generator)[:n]]
+
+
 def sample_pixels(
     height: int,
     width: int,

@@ -8,7 +8,7 @@ from torch import Tensor
 
 from inrslam.data.frame import Frame
 from inrslam.geometry.camera import pixel_directions
-from inrslam.rendering.sampling import sample_pixels
+from inrslam.rendering.sampling import distinct_indices, sample_pixels
 
 
 class FrameTensors:
@@ -57,6 +57,12 @@ class FrameTensors:
     def sample(self, n: int, generator: torch.Generator, edge: int = 0) -> tuple[Tensor, Tensor, Tensor]:
         """n distinct pixels uniformly inside an `edge`-pixel border (no border if it would leave none)."""
         return self.rays(self.sample_index(n, generator, edge))
+
+    def sample_distinct(self, n: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+        """n distinct pixels of the whole image, uniformly (`distinct_indices`: no full permutation of H*W, which
+        costs ~3 ms at 640x480; a different draw from `sample` for the same generator state)."""
+        H, W = self.intr.height, self.intr.width
+        return self.rays(distinct_indices(H * W, min(n, H * W), generator).to(self.device))
 
     def sample_index(self, n: int, generator: torch.Generator, edge: int = 0) -> Tensor:
         """The (n,) flat pixel indices `sample` draws."""

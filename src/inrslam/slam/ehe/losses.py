@@ -36,6 +36,24 @@ def sdf_terms(sdf: Tensor, z: Tensor, valid: Tensor, depth: Tensor, truncation: 
     return (1.0 - n_f / tot) * fs, (1.0 - n_b / tot) * sd
 
 
+def packed_sdf_terms(sdf: Tensor, z: Tensor, ray: Tensor, depth: Tensor, has_depth: Tensor,
+                     truncation: float) -> tuple[Tensor, Tensor]:
+    """`sdf_terms` on packed samples: sdf, z (N,), ray (N,) the ray of each sample; depth (R,) metres and
+    has_depth (R,) bool per ray (samples of rays without depth are not counted)."""
+    D = depth[ray]
+    sup = has_depth[ray]
+    front = sup & (z < D - truncation)
+    band = sup & ((z - D).abs() <= truncation)
+    n_f, n_b, n = front.sum(), band.sum(), sup.sum()
+    if int(n) == 0 or int(n_f + n_b) == 0:
+        zero = sdf.new_zeros(()) * sdf.sum()
+        return zero, zero
+    tot = (n_f + n_b).to(sdf.dtype)
+    fs = torch.where(front, (sdf - 1.0) ** 2, 0.0).sum() / n
+    sd = torch.where(band, (z + sdf * truncation - D) ** 2, 0.0).sum() / n
+    return (1.0 - n_f / tot) * fs, (1.0 - n_b / tot) * sd
+
+
 def ehe_losses(out: EheRender, rgb: Tensor, depth: Tensor, cfg: EheConfig) -> dict[str, Tensor]:
     """Loss terms and 'total' = 5 L_rgb + 1 L_depth + 10 L_fs + 50000 L_sdf (weights from `cfg`).
 
@@ -48,10 +66,9 @@ def ehe_losses(out: EheRender, rgb: Tensor, depth: Tensor, cfg: EheConfig) -> di
     has_d = hit & (depth > cfg.depth_min) & (depth < cfg.depth_max)
     l_rgb = _mean((out.rgb[hit] - rgb[hit]).abs())
     l_depth = _mean((out.depth[has_d] - depth[has_d]).abs())
-    fs, sd = sdf_terms(out.sdf, out.z, out.valid & has_d[:, None], depth, cfg.truncation)
+    fs, sd = packed_sdf_terms(out.sdf, out.z, out.ray, depth, has_d, cfg.truncation)
     total = cfg.color_weight * l_rgb + cfg.depth_weight * l_depth + cfg.free_space_weight * fs + cfg.sdf_weight * sd
     with torch.no_grad():
         mse = _mean((out.rgb[hit] - rgb[hit]) ** 2)
     return {"total": total, "rgb": l_rgb, "depth": l_depth, "free_space": fs, "sdf": sd, "mse": mse,
             "depth_l1": l_depth.detach()}
-

@@ -96,7 +96,7 @@ def optimise(model, optimizers: dict, batch: RayBatch, iters: int, early_stop: b
     stop = EarlyStop()
     for _ in range(iters):
         o, d, rgb, depth = batch()
-        losses, _ = model.loss(o, d, rgb, depth, generator)
+        losses = model.loss(o, d, rgb, depth, generator)
         total = losses["total"]
         for opt in optimizers.values():
             opt.zero_grad()

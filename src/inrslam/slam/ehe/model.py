@@ -8,14 +8,16 @@ import torch
 from torch import Tensor, nn
 
 from inrslam.fields import make_optimizer
+from inrslam.fields.config import KernelChoice
 from inrslam.geometry.camera import pixel_directions, world_rays
 from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.rendering import surface_depth
 from inrslam.slam.ehe.config import EheConfig
 from inrslam.slam.ehe.field import EheField
+from inrslam.slam.ehe.fused_loss import bells, fused_losses, fused_weights
 from inrslam.slam.ehe.losses import ehe_losses
-from inrslam.slam.ehe.raymarch import sample_in_voxels
-from inrslam.slam.ehe.rendering import EheRender, render_samples
+from inrslam.slam.ehe.raymarch import packed_samples_in_voxels, sample_in_voxels
+from inrslam.slam.ehe.rendering import COLOR_MIN_WEIGHT, EheRender, render_samples
 
 
 class EheModel(nn.Module):
@@ -33,6 +35,7 @@ class EheModel(nn.Module):
         self.ecfg: EheConfig = cfg.ehe
         self.field = EheField(self.ecfg, bounds, kernel=cfg.field.kernel, decoder_kernel=cfg.field.decoder_kernel)
         self.truncation = float(self.ecfg.truncation)
+        self.kernel = KernelChoice(cfg.field.kernel).value  # auto / numba: fused losses on CPU (`loss`)
         self.register_buffer("bounds", torch.as_tensor(np.asarray(bounds), dtype=torch.float32))
 
     def make_optimizers(self, lr: float) -> dict[str, torch.optim.Optimizer]:
@@ -47,10 +50,31 @@ class EheModel(nn.Module):
         return render_samples(self.field, origins, dirs, samples, self.truncation)
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, depth: Tensor,
-             generator: torch.Generator | None) -> tuple[dict[str, Tensor], EheRender]:
-        """Loss terms (`ehe_losses`) of world rays with observed rgb (R, 3) and depth (R,) metres."""
-        out = self.render(origins, dirs, generator)
-        return ehe_losses(out, rgb, depth, self.ecfg), out
+             generator: torch.Generator | None) -> dict[str, Tensor]:
+        """Loss terms (`ehe_losses`) of world rays with observed rgb (R, 3) and depth (R,) metres.
+
+        With `field.kernel` auto or numba on CPU tensors, compositing and losses run fused (`fused_losses`, one
+        numba pass each way); with torch (or on another device) `render` then `ehe_losses`, the reference.
+        """
+        c = self.ecfg
+        args = (self.field.voxels, origins, dirs, c.step * c.voxel_size, c.max_hits, c.max_depth, generator)
+        if self.kernel == "torch" or origins.device.type != "cpu":
+            return ehe_losses(render_samples(self.field, origins, dirs, sample_in_voxels(*args), self.truncation),
+                              rgb, depth, c)
+        z, ray, start, pts = packed_samples_in_voxels(*args)
+        p, f = self.field.encode(pts)
+        sdf = self.field.sdf_from(pts, p, f)
+        bell = bells(sdf, self.truncation)
+        use = torch.nonzero(fused_weights(sdf, z, start, self.truncation, bell[0]) > COLOR_MIN_WEIGHT).reshape(-1)
+        colors = torch.sigmoid(self.field.rgb_from(p[use], f[use]))
+        crow = torch.full_like(ray, -1)
+        crow[use] = torch.arange(use.numel())
+        has_d = (start[1:] > start[:-1]) & (depth > c.depth_min) & (depth < c.depth_max)
+        terms, mse = fused_losses(sdf, colors, z, start, crow, rgb, depth, has_d, self.truncation, bell)
+        l_rgb, l_depth, fs, sd = terms.unbind()
+        total = c.color_weight * l_rgb + c.depth_weight * l_depth + c.free_space_weight * fs + c.sdf_weight * sd
+        return {"total": total, "rgb": l_rgb, "depth": l_depth, "free_space": fs, "sdf": sd, "mse": mse,
+                "depth_l1": l_depth.detach()}
 
     @torch.no_grad()
     def render_image(self, c2w: Tensor, intr: Intrinsics, n_coarse: int = 0,
@@ -72,5 +96,6 @@ class EheModel(nn.Module):
             out = self.render(o, d, None)
             rgbs.append(out.rgb)
             # padding repeats the last valid SDF: no crossing there
-            depths.append(surface_depth(out.sdf, out.z, out.depth) if depth == "surface" else out.depth)
+            depths.append(surface_depth(out.padded(out.sdf), out.padded(out.z), out.depth) if depth == "surface"
+                          else out.depth)
         return torch.cat(rgbs).reshape(H, W, 3), torch.cat(depths).reshape(H, W)

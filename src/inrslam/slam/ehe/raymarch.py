@@ -19,6 +19,16 @@ from torch import Tensor
 from inrslam.slam.ehe.voxels import VoxelGrid
 
 
+class PackedSamples(NamedTuple):
+    """The valid samples of R rays only, in ray order: z (N,) ray parameter (metres of z-depth), ray (N,) int64 its
+    ray, start (R + 1,) int64 offsets of each ray's samples, points (N, 3) world o + z d (float32)."""
+
+    z: Tensor
+    ray: Tensor
+    start: Tensor
+    points: Tensor
+
+
 class RaySamples(NamedTuple):
     """Samples of R rays, padded to S per ray: z (R, S) ray parameter (z-depth, metres, sorted; padding repeats the
     last valid value), valid (R, S) bool, n_hits (R,) int64 merged hit intervals (0 = the ray misses every voxel)."""
@@ -132,6 +142,38 @@ def _lattice_samples(t_in, t_out, n_hits, dt, jitter, S, z, valid):
 
 
 @njit(cache=True)
+def _lattice_count(t_in, t_out, n_hits, dt, jitter, counts):
+    """counts[r]: the samples `_lattice_samples` puts on ray r (same rule, no cap)."""
+    for r in range(t_in.shape[0]):
+        m = 0
+        for h in range(n_hits[r]):
+            k = int(math.ceil(t_in[r, h] / dt[r] - jitter[r]))
+            while (k + jitter[r]) * dt[r] < t_out[r, h]:
+                if (k + jitter[r]) * dt[r] >= t_in[r, h]:
+                    m += 1
+                k += 1
+        counts[r] = m
+
+
+@njit(cache=True)
+def _lattice_fill(t_in, t_out, n_hits, dt, jitter, start, o, d, z, ray, pts):
+    """The samples of `_lattice_samples`, packed from start[r], with their ray and world point o + z d."""
+    for r in range(t_in.shape[0]):
+        m = start[r]
+        for h in range(n_hits[r]):
+            k = int(math.ceil(t_in[r, h] / dt[r] - jitter[r]))
+            while (k + jitter[r]) * dt[r] < t_out[r, h]:
+                t = (k + jitter[r]) * dt[r]
+                if t >= t_in[r, h]:
+                    z[m] = t
+                    ray[m] = r
+                    for a in range(3):
+                        pts[m, a] = o[r, a] + t * d[r, a]
+                    m += 1
+                k += 1
+
+
+@njit(cache=True)
 def _count_samples(t_in, t_out, n_hits, dt):
     best = 0
     for r in range(t_in.shape[0]):
@@ -165,3 +207,25 @@ def sample_in_voxels(grid: VoxelGrid, origins: Tensor, dirs: Tensor, step: float
     dev = origins.device
     return RaySamples(torch.from_numpy(z).to(dev, torch.float32), torch.from_numpy(valid).to(dev),
                       torch.from_numpy(n).to(dev))
+
+
+def packed_samples_in_voxels(grid: VoxelGrid, origins: Tensor, dirs: Tensor, step: float, max_hits: int,
+                             t_max: float, generator: torch.Generator | None = None) -> PackedSamples:
+    """`sample_in_voxels`' valid samples, packed in ray order (the same samples for the same generator state),
+    with their world points: what mapping needs, without the (R, S) padding."""
+    t_in, t_out, n = voxel_hits(grid, origins, dirs, max_hits, t_max)
+    R = origins.shape[0]
+    dt = (step / dirs.detach().double().norm(dim=1)).cpu().numpy()
+    u = (torch.rand(R, generator=generator, dtype=torch.float64).numpy() if generator is not None
+         else np.full(R, 0.5))
+    counts = np.zeros(R, np.int64)
+    _lattice_count(t_in, t_out, n, dt, u, counts)
+    start = np.zeros(R + 1, np.int64)
+    np.cumsum(counts, out=start[1:])
+    N = int(start[-1])
+    z, ray, pts = np.zeros(N), np.zeros(N, np.int64), np.zeros((N, 3), np.float32)
+    _lattice_fill(t_in, t_out, n, dt, u, start, origins.detach().double().cpu().numpy(),
+                  dirs.detach().double().cpu().numpy(), z, ray, pts)
+    dev = origins.device
+    return PackedSamples(torch.from_numpy(z).to(dev, torch.float32), torch.from_numpy(ray).to(dev),
+                         torch.from_numpy(start).to(dev), torch.from_numpy(pts).to(dev))

@@ -13,16 +13,28 @@ from inrslam.slam.ehe.raymarch import RaySamples
 
 
 class EheRender(NamedTuple):
-    """rgb (R, 3), depth (R,) metres (z-depth), hit (R,) bool (the ray has samples), sdf (R, S) T-units
-    (padding repeats the last valid value), z (R, S) metres, valid (R, S) bool, weights (R, S)."""
+    """rgb (R, 3), depth (R,) metres (z-depth), hit (R,) bool (the ray has samples); then the N valid samples,
+    packed in ray order: sdf (N,) T-units, z (N,) metres, ray (N,) int64 (the ray of each sample), weights (N,);
+    slot (N,) int64 the flat index of each sample in the padded (R, S) layout of `RaySamples`, S = `width`."""
 
     rgb: Tensor
     depth: Tensor
     hit: Tensor
     sdf: Tensor
     z: Tensor
-    valid: Tensor
+    ray: Tensor
     weights: Tensor
+    slot: Tensor
+    width: int
+
+    def padded(self, values: Tensor) -> Tensor:
+        """Packed per-sample values (N,) -> (R, S), each row's padding repeating its last value (0 if none), the
+        layout `first_crossing` and `masked_direct_weights` read."""
+        R = self.hit.shape[0]
+        out = values.new_zeros(R * self.width).index_put((self.slot,), values).reshape(R, self.width)
+        valid = torch.zeros(R * self.width, dtype=torch.bool, device=values.device)
+        valid[self.slot] = True
+        return fill_padding(out, valid.reshape(R, self.width))
 
 
 def fill_padding(values: Tensor, valid: Tensor) -> Tensor:
@@ -46,6 +58,24 @@ def masked_direct_weights(sdf: Tensor, z: Tensor, valid: Tensor, truncation: flo
     return w / (w.sum(dim=-1, keepdim=True) + 1e-8)
 
 
+def packed_direct_weights(sdf: Tensor, z: Tensor, ray: Tensor, n_rays: int, truncation: float) -> Tensor:
+    """`masked_direct_weights` on packed samples (sdf, z (N,) in ray order, ray (N,) sorted), (N,) weights.
+
+    Same rule: the first sign change k of each ray's samples (between two consecutive samples of that ray),
+    m_i = 1[z_i < z_k + T] (every sample when the ray has none), w_i = ŵ_i m_i / (Σ_j ŵ_j m_j + 1e-8) per ray.
+    """
+    N = sdf.numel()
+    pos = sdf.detach() > 0
+    change = (pos[1:] != pos[:-1]) & (ray[1:] == ray[:-1])  # (N-1,): a crossing between samples j and j+1
+    j = torch.nonzero(change).reshape(-1)
+    first = torch.full((n_rays,), N, dtype=torch.int64, device=sdf.device)
+    first = first.scatter_reduce(0, ray[j], j, "amin")  # N: no crossing
+    z_k = torch.cat([z, z.new_full((1,), float("inf"))])[first]  # inf: keep every sample
+    w = bell_weights(sdf, truncation) * (z < z_k[ray] + truncation)
+    total = torch.zeros(n_rays, dtype=w.dtype, device=w.device).index_add(0, ray, w)
+    return w / (total[ray] + 1e-8)
+
+
 # samples whose normalised weight is below this get no colour query: their share of Ĉ is < 1e-6 each
 COLOR_MIN_WEIGHT = 1e-6
 
@@ -53,22 +83,22 @@ COLOR_MIN_WEIGHT = 1e-6
 def render_samples(field, origins: Tensor, dirs: Tensor, samples: RaySamples, truncation: float) -> EheRender:
     """Query `field` (an `EheField`) at the valid samples o + z d and composite Ĉ = Σ w c, D̂ = Σ w z.
 
-    The SDF is evaluated at every valid sample; the colour decoder only where w > COLOR_MIN_WEIGHT (the bell
-    weights σ(s/T)σ(−s/T) vanish a few centimetres from the surface, so most samples cannot change Ĉ; the
-    skipped ones change it by less than 1e-6 each). Args: origins, dirs (R, 3) world; samples from
-    `sample_in_voxels`.
+    The samples are packed (only the valid ones, in ray order) before anything is computed on them. The SDF is
+    evaluated at every valid sample; the colour decoder only where w > COLOR_MIN_WEIGHT (the bell weights
+    σ(s/T)σ(−s/T) vanish a few centimetres from the surface, so most samples cannot change Ĉ; the skipped ones
+    change it by less than 1e-6 each). Args: origins, dirs (R, 3) world; samples from `sample_in_voxels`.
     """
-    z, valid = samples.z, samples.valid
-    R, S = z.shape
-    pts = (origins[:, None, :] + z[..., None] * dirs[:, None, :])[valid]
+    R, S = samples.z.shape
+    slot = torch.nonzero(samples.valid.reshape(-1)).reshape(-1)
+    ray = torch.div(slot, S, rounding_mode="floor")
+    z = samples.z.reshape(-1)[slot]
+    pts = torch.addcmul(origins[ray], z[:, None], dirs[ray])
     p, f = field.encode(pts)
-    sdf = torch.zeros(R, S, dtype=z.dtype, device=z.device).masked_scatter(valid, field.sdf_from(pts, p, f))
-    sdf = fill_padding(sdf, valid)
-    w = masked_direct_weights(sdf, z, valid, truncation)
-    use = w[valid].detach() > COLOR_MIN_WEIGHT
-    where = torch.nonzero(valid)[use]
+    sdf = field.sdf_from(pts, p, f)
+    w = packed_direct_weights(sdf, z, ray, R, truncation)
+    use = torch.nonzero(w.detach() > COLOR_MIN_WEIGHT).reshape(-1)
     rgb_s = torch.sigmoid(field.rgb_from(p[use], f[use]))
-    rgb = torch.zeros(R, 3, dtype=z.dtype, device=z.device).index_add(0, where[:, 0],
-                                                                       w[where[:, 0], where[:, 1], None] * rgb_s)
-    depth = (w * z).sum(dim=-1)
-    return EheRender(rgb, depth, valid.any(dim=1), sdf, z, valid, w)
+    rgb = torch.zeros(R, 3, dtype=z.dtype, device=z.device).index_add(0, ray[use], w[use, None] * rgb_s)
+    depth = torch.zeros(R, dtype=z.dtype, device=z.device).index_add(0, ray, w * z)
+    hit = torch.bincount(ray, minlength=R) > 0
+    return EheRender(rgb, depth, hit, sdf, z, ray, w, slot, S)

@@ -118,7 +118,7 @@ class EheSystem(SlamSystem):
         poses = self.est[[store.frame_ids[k] for k in window]] if window else None
 
         def batch():
-            dirs, rgb, depth = ft.sample(c.rays - n_per * len(window), self.generator)
+            dirs, rgb, depth = ft.sample_distinct(c.rays - n_per * len(window), self.generator)
             o, d = world_rays(c2w, dirs)
             parts = [(o, d, rgb, depth)]
             if window:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numba import njit
 from torch import Tensor, nn
 
 from inrslam.fields.config import KernelChoice
@@ -110,6 +111,29 @@ class VoxelGrid(nn.Module):
     def n_vertices(self) -> int:
         return int(self.vertex_used.sum())
 
+    def point_stats(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Per voxel key: the number of points (N, 3) metres inside it, (n_keys,) int64, and the sum of their
+        positions inside the voxel ((x − origin)/voxel_size − ijk, in [0, 1)³), (n_keys, 3). One numba pass on
+        CPU float32 points; `point_stats_torch` (the reference) otherwise."""
+        if points.device.type != "cpu" or points.dtype != torch.float32:
+            return self.point_stats_torch(points)
+        n_keys = self.allocated.numel()
+        counts = np.zeros(n_keys, np.int64)
+        sums = np.zeros((n_keys, 3), np.float32)
+        _point_stats(points.contiguous().numpy(), self.origin.numpy(), np.float32(self.voxel_size), *self.dims,
+                     counts, sums)
+        return torch.from_numpy(counts), torch.from_numpy(sums)
+
+    def point_stats_torch(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """`point_stats` in torch (any device)."""
+        ijk, inside = self.coords(points)
+        ijk, pts = ijk[inside], points[inside]
+        n_keys = self.allocated.numel()
+        key = self.key(ijk)
+        counts = torch.bincount(key, minlength=n_keys)
+        local = (pts - self.origin) / self.voxel_size - ijk.to(pts.dtype)  # (N, 3) in [0, 1)
+        return counts, torch.zeros(n_keys, 3, dtype=pts.dtype, device=pts.device).index_add_(0, key, local)
+
     # -- allocation ------------------------------------------------------------------------------------------------
     @torch.no_grad()
     def allocate(self, points: Tensor, min_points: int, margin: float, max_vertices: int) -> Allocation:
@@ -118,18 +142,12 @@ class VoxelGrid(nn.Module):
         Rule (docs/ehe.md §2): a voxel holding more than `min_points` points is allocated; for each axis, when the
         mean of its points lies within `margin`·voxel_size of a face, the face neighbour is allocated too.
         """
-        ijk, inside = self.coords(points)
-        ijk, pts = ijk[inside], points[inside]
-        n_keys = self.allocated.numel()
-        key = self.key(ijk)
-        counts = torch.bincount(key, minlength=n_keys)
+        counts, sums = self.point_stats(points)
         occ = torch.nonzero(counts > min_points).squeeze(1)
         if occ.numel() == 0:
             empty = occ.new_zeros(0)
             return Allocation(empty, empty)
-        local = (pts - self.origin) / self.voxel_size - ijk.to(pts.dtype)  # (N, 3) in [0, 1)
-        sums = torch.zeros(n_keys, 3, dtype=pts.dtype, device=pts.device).index_add_(0, key, local)
-        mean = sums[occ] / counts[occ, None].to(pts.dtype)  # (K, 3)
+        mean = sums[occ] / counts[occ, None].to(sums.dtype)  # (K, 3)
         base = self.unkey(occ)
         cand = [base]
         dims = torch.tensor(self.dims, device=points.device)
@@ -195,3 +213,21 @@ class VoxelGrid(nn.Module):
         """
         extent = self.origin.new_tensor(self.dims) * self.voxel_size
         return self.priors.lookup((points - self.origin) / extent)[:, 0, 0]
+
+
+@njit(cache=True)
+def _point_stats(points, origin, voxel, nx, ny, nz, counts, sums):  # pragma: no cover - numba
+    """`VoxelGrid.point_stats` for float32 points: voxel coordinates floor((x − origin)/voxel) in float32 as
+    `VoxelGrid.coords`; points outside the box are skipped."""
+    for n in range(points.shape[0]):
+        u0 = (points[n, 0] - origin[0]) / voxel
+        u1 = (points[n, 1] - origin[1]) / voxel
+        u2 = (points[n, 2] - origin[2]) / voxel
+        i, j, k = math.floor(u0), math.floor(u1), math.floor(u2)
+        if i < 0 or j < 0 or k < 0 or i >= nx or j >= ny or k >= nz:
+            continue
+        key = i + nx * (j + ny * k)
+        counts[key] += 1
+        sums[key, 0] += u0 - i
+        sums[key, 1] += u1 - j
+        sums[key, 2] += u2 - k
