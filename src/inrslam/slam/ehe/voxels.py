@@ -223,9 +223,9 @@ def _point_stats(points, origin, voxel, nx, ny, nz, counts, sums):  # pragma: no
         u0 = (points[n, 0] - origin[0]) / voxel
         u1 = (points[n, 1] - origin[1]) / voxel
         u2 = (points[n, 2] - origin[2]) / voxel
-        i, j, k = math.floor(u0), math.floor(u1), math.floor(u2)
-        if i < 0 or j < 0 or k < 0 or i >= nx or j >= ny or k >= nz:
+        if not (0.0 <= u0 < nx and 0.0 <= u1 < ny and 0.0 <= u2 < nz):  # outside the box, or NaN
             continue
+        i, j, k = math.floor(u0), math.floor(u1), math.floor(u2)
         key = i + nx * (j + ny * k)
         counts[key] += 1
         sums[key, 0] += u0 - i
