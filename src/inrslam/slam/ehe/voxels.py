@@ -120,7 +120,8 @@ class VoxelGrid(nn.Module):
         n_keys = self.allocated.numel()
         counts = np.zeros(n_keys, np.int64)
         sums = np.zeros((n_keys, 3), np.float32)
-        _point_stats(points.contiguous().numpy(), self.origin.numpy(), np.float32(self.voxel_size), *self.dims,
+        nx, ny, nz = self.dims
+        _point_stats(points.contiguous().numpy(), self.origin.numpy(), np.float32(self.voxel_size), nx, ny, nz,
                      counts, sums)
         return torch.from_numpy(counts), torch.from_numpy(sums)
 
