@@ -92,7 +92,8 @@ def test_ehe_losses_are_l1_on_hit_rays_with_the_configured_weights():
     slot = torch.nonzero(valid.reshape(-1)).reshape(-1)
     out = EheRender(rgb=torch.tensor([[0.5, 0.5, 0.5], [0.0, 0.0, 0.0], [0.2, 0.2, 0.2]]),
                     depth=torch.tensor([1.005, 0.0, 2.0]), hit=valid.any(1), sdf=torch.zeros(4),
-                    z=z.reshape(-1)[slot], ray=slot // 2, weights=torch.full((4,), 0.5), slot=slot, width=2)
+                    z=z.reshape(-1)[slot], ray=slot // 2, weights=torch.full((4,), 0.5),
+                    start=torch.tensor([0, 2, 2, 4]))
     rgb = torch.tensor([[0.6, 0.5, 0.3], [1.0, 1.0, 1.0], [0.2, 0.2, 0.2]])
     depth = torch.tensor([1.0, 1.0, 0.0])  # ray 1 misses every voxel: no loss; ray 2 has no depth
     l = ehe_losses(out, rgb, depth, cfg)
@@ -154,7 +155,8 @@ def test_a_render_packs_its_samples_and_pads_them_back():
     sdf, z, valid, _, _ = random_padded_rays(7, R=5, S=6, dtype=torch.float32)
     slot = torch.nonzero(valid.reshape(-1)).reshape(-1)
     out = EheRender(rgb=torch.zeros(5, 3), depth=torch.zeros(5), hit=valid.any(1), sdf=packed(sdf, valid),
-                    z=packed(z, valid), ray=slot // 6, weights=packed(sdf, valid), slot=slot, width=6)
+                    z=packed(z, valid), ray=slot // 6, weights=packed(sdf, valid),
+                    start=torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(valid.sum(1), 0)]))
     assert torch.equal(out.padded(out.z), z) and torch.equal(out.padded(out.sdf.detach()), sdf.detach())
 
 

@@ -16,7 +16,7 @@ from inrslam.slam.ehe.config import EheConfig
 from inrslam.slam.ehe.field import EheField
 from inrslam.slam.ehe.fused_loss import bells, fused_losses, fused_weights
 from inrslam.slam.ehe.losses import ehe_losses
-from inrslam.slam.ehe.raymarch import packed_samples_in_voxels, sample_in_voxels
+from inrslam.slam.ehe.raymarch import packed_samples_in_voxels
 from inrslam.slam.ehe.rendering import COLOR_MIN_WEIGHT, EheRender, render_samples
 
 
@@ -45,8 +45,8 @@ class EheModel(nn.Module):
     def render(self, origins: Tensor, dirs: Tensor, generator: torch.Generator | None) -> EheRender:
         """Render world rays (R, 3) (t = z-depth): samples inside the hit voxels (jittered with `generator`)."""
         c = self.ecfg
-        samples = sample_in_voxels(self.field.voxels, origins, dirs, c.step * c.voxel_size, c.max_hits, c.max_depth,
-                                   generator)
+        samples = packed_samples_in_voxels(self.field.voxels, origins, dirs, c.step * c.voxel_size, c.max_hits,
+                                           c.max_depth, generator)
         return render_samples(self.field, origins, dirs, samples, self.truncation)
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, depth: Tensor,
@@ -57,11 +57,10 @@ class EheModel(nn.Module):
         numba pass each way); with torch (or on another device) `render` then `ehe_losses`, the reference.
         """
         c = self.ecfg
-        args = (self.field.voxels, origins, dirs, c.step * c.voxel_size, c.max_hits, c.max_depth, generator)
         if self.kernel == "torch" or origins.device.type != "cpu":
-            return ehe_losses(render_samples(self.field, origins, dirs, sample_in_voxels(*args), self.truncation),
-                              rgb, depth, c)
-        z, ray, start, pts = packed_samples_in_voxels(*args)
+            return ehe_losses(self.render(origins, dirs, generator), rgb, depth, c)
+        z, ray, start, pts = packed_samples_in_voxels(self.field.voxels, origins, dirs, c.step * c.voxel_size,
+                                                      c.max_hits, c.max_depth, generator)
         p, f = self.field.encode(pts)
         sdf = self.field.sdf_from(pts, p, f)
         bell = bells(sdf, self.truncation)

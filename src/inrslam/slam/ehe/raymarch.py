@@ -120,30 +120,8 @@ def _dda(o, d, alloc, nx, ny, nz, t_max, max_hits, t_in, t_out, n_hits):
 
 
 @njit(cache=True)
-def _lattice_samples(t_in, t_out, n_hits, dt, jitter, S, z, valid):
-    """Fill z[r, :], valid[r, :] with t_k = (k + jitter[r])·dt[r] inside the intervals of ray r (at most S)."""
-    for r in range(t_in.shape[0]):
-        m = 0
-        last = 0.0
-        for h in range(n_hits[r]):
-            k = int(math.ceil(t_in[r, h] / dt[r] - jitter[r]))
-            while m < S:
-                t = (k + jitter[r]) * dt[r]
-                if t >= t_out[r, h]:
-                    break
-                if t >= t_in[r, h]:
-                    z[r, m] = t
-                    valid[r, m] = True
-                    last = t
-                    m += 1
-                k += 1
-        for j in range(m, S):
-            z[r, j] = last
-
-
-@njit(cache=True)
 def _lattice_count(t_in, t_out, n_hits, dt, jitter, counts):
-    """counts[r]: the samples `_lattice_samples` puts on ray r (same rule, no cap)."""
+    """counts[r]: the lattice samples t_k = (k + jitter[r])·dt[r] inside the intervals of ray r."""
     for r in range(t_in.shape[0]):
         m = 0
         for h in range(n_hits[r]):
@@ -157,7 +135,7 @@ def _lattice_count(t_in, t_out, n_hits, dt, jitter, counts):
 
 @njit(cache=True)
 def _lattice_fill(t_in, t_out, n_hits, dt, jitter, start, o, d, z, ray, pts):
-    """The samples of `_lattice_samples`, packed from start[r], with their ray and world point o + z d."""
+    """The samples `_lattice_count` counts, packed from start[r], with their ray and world point o + z d."""
     for r in range(t_in.shape[0]):
         m = start[r]
         for h in range(n_hits[r]):
@@ -173,46 +151,11 @@ def _lattice_fill(t_in, t_out, n_hits, dt, jitter, start, o, d, z, ray, pts):
                 k += 1
 
 
-@njit(cache=True)
-def _count_samples(t_in, t_out, n_hits, dt):
-    best = 0
-    for r in range(t_in.shape[0]):
-        n = 0
-        for h in range(n_hits[r]):
-            n += int((t_out[r, h] - t_in[r, h]) / dt[r]) + 1
-        best = max(best, n)
-    return best
-
-
-def sample_in_voxels(grid: VoxelGrid, origins: Tensor, dirs: Tensor, step: float, max_hits: int, t_max: float,
-                     generator: torch.Generator | None = None) -> RaySamples:
-    """Samples every `step` metres along each ray, inside its first `max_hits` allocated voxels only.
-
-    Args: origins, dirs (R, 3) world (t = z-depth); step metres; generator: per-ray lattice offset u ~ U(0, 1)
-        (None: u = 0.5, deterministic).
-    Returns: RaySamples with S = the most samples any ray has (at least 1).
-
-    Example: a ray along +z from z = 0 through allocated voxels [0.3, 0.4) m, step 0.01, u = 0.5 ->
-    z = 0.305, 0.315, ..., 0.395 (10 samples).
-    """
-    t_in, t_out, n = voxel_hits(grid, origins, dirs, max_hits, t_max)
-    R = origins.shape[0]
-    dt = (step / dirs.detach().double().norm(dim=1)).cpu().numpy()
-    u = (torch.rand(R, generator=generator, dtype=torch.float64).numpy() if generator is not None
-         else np.full(R, 0.5))
-    S = max(1, _count_samples(t_in, t_out, n, dt))
-    z = np.zeros((R, S))
-    valid = np.zeros((R, S), dtype=np.bool_)
-    _lattice_samples(t_in, t_out, n, dt, u, S, z, valid)
-    dev = origins.device
-    return RaySamples(torch.from_numpy(z).to(dev, torch.float32), torch.from_numpy(valid).to(dev),
-                      torch.from_numpy(n).to(dev))
-
-
-def packed_samples_in_voxels(grid: VoxelGrid, origins: Tensor, dirs: Tensor, step: float, max_hits: int,
-                             t_max: float, generator: torch.Generator | None = None) -> PackedSamples:
-    """`sample_in_voxels`' valid samples, packed in ray order (the same samples for the same generator state),
-    with their world points: what mapping needs, without the (R, S) padding."""
+def _lattice(grid: VoxelGrid, origins: Tensor, dirs: Tensor, step: float, max_hits: int, t_max: float,
+             generator: torch.Generator | None) -> tuple[np.ndarray, ...]:
+    """The lattice samples of each ray inside its hit voxels, packed: z (N,) float64, ray (N,), start (R + 1,),
+    points (N, 3) float32 and the rays' merged hit intervals n_hits (R,); the lattice offset u ~ U(0, 1) per ray from
+    `generator` (None: u = 0.5)."""
     t_in, t_out, n = voxel_hits(grid, origins, dirs, max_hits, t_max)
     R = origins.shape[0]
     dt = (step / dirs.detach().double().norm(dim=1)).cpu().numpy()
@@ -226,6 +169,41 @@ def packed_samples_in_voxels(grid: VoxelGrid, origins: Tensor, dirs: Tensor, ste
     z, ray, pts = np.zeros(N), np.zeros(N, np.int64), np.zeros((N, 3), np.float32)
     _lattice_fill(t_in, t_out, n, dt, u, start, origins.detach().double().cpu().numpy(),
                   dirs.detach().double().cpu().numpy(), z, ray, pts)
+    return z, ray, start, pts, n
+
+
+def sample_in_voxels(grid: VoxelGrid, origins: Tensor, dirs: Tensor, step: float, max_hits: int, t_max: float,
+                     generator: torch.Generator | None = None) -> RaySamples:
+    """Samples every `step` metres along each ray, inside its first `max_hits` allocated voxels only.
+
+    Args: origins, dirs (R, 3) world (t = z-depth); step metres; generator: per-ray lattice offset u ~ U(0, 1)
+        (None: u = 0.5, deterministic).
+    Returns: RaySamples with S = the most samples any ray has (at least 1): `packed_samples_in_voxels`' samples,
+    padded.
+
+    Example: a ray along +z from z = 0 through allocated voxels [0.3, 0.4) m, step 0.01, u = 0.5 ->
+    z = 0.305, 0.315, ..., 0.395 (10 samples).
+    """
+    z, ray, start, _, n = _lattice(grid, origins, dirs, step, max_hits, t_max, generator)
+    R = origins.shape[0]
+    counts = start[1:] - start[:-1]
+    S = max(1, int(counts.max(initial=0)))
+    col = np.arange(z.shape[0]) - start[ray]
+    valid = np.zeros((R, S), dtype=np.bool_)
+    valid[ray, col] = True
+    last = np.where(counts > 0, z[np.maximum(start[1:] - 1, 0)] if z.shape[0] else 0.0, 0.0)
+    zp = np.repeat(last[:, None], S, axis=1)  # padding repeats the ray's last sample (0 without any)
+    zp[ray, col] = z
+    dev = origins.device
+    return RaySamples(torch.from_numpy(zp).to(dev, torch.float32), torch.from_numpy(valid).to(dev),
+                      torch.from_numpy(n).to(dev))
+
+
+def packed_samples_in_voxels(grid: VoxelGrid, origins: Tensor, dirs: Tensor, step: float, max_hits: int,
+                             t_max: float, generator: torch.Generator | None = None) -> PackedSamples:
+    """`sample_in_voxels`' valid samples, packed in ray order (the same samples for the same generator state),
+    with their world points: what mapping needs, without the (R, S) padding."""
+    z, ray, start, pts, _ = _lattice(grid, origins, dirs, step, max_hits, t_max, generator)
     dev = origins.device
     return PackedSamples(torch.from_numpy(z).to(dev, torch.float32), torch.from_numpy(ray).to(dev),
                          torch.from_numpy(start).to(dev), torch.from_numpy(pts).to(dev))

@@ -9,13 +9,13 @@ import torch
 from torch import Tensor
 
 from inrslam.rendering.functional import bell_weights, first_surface_mask
-from inrslam.slam.ehe.raymarch import RaySamples
+from inrslam.slam.ehe.raymarch import PackedSamples
 
 
 class EheRender(NamedTuple):
-    """rgb (R, 3), depth (R,) metres (z-depth), hit (R,) bool (the ray has samples); then the N valid samples,
-    packed in ray order: sdf (N,) T-units, z (N,) metres, ray (N,) int64 (the ray of each sample), weights (N,);
-    slot (N,) int64 the flat index of each sample in the padded (R, S) layout of `RaySamples`, S = `width`."""
+    """rgb (R, 3), depth (R,) metres (z-depth), hit (R,) bool (the ray has samples); then the N samples, packed in
+    ray order: sdf (N,) T-units, z (N,) metres, ray (N,) int64 (the ray of each sample), weights (N,); start (R + 1,)
+    int64 the offset of each ray's samples."""
 
     rgb: Tensor
     depth: Tensor
@@ -24,17 +24,17 @@ class EheRender(NamedTuple):
     z: Tensor
     ray: Tensor
     weights: Tensor
-    slot: Tensor
-    width: int
+    start: Tensor
 
     def padded(self, values: Tensor) -> Tensor:
-        """Packed per-sample values (N,) -> (R, S), each row's padding repeating its last value (0 if none), the
-        layout `first_crossing` and `masked_direct_weights` read."""
+        """Packed per-sample values (N,) -> (R, S) with S the most samples of a ray (at least 1), each row's padding
+        repeating its last value (0 if none): the layout `first_crossing` and `masked_direct_weights` read."""
         R = self.hit.shape[0]
-        out = values.new_zeros(R * self.width).index_put((self.slot,), values).reshape(R, self.width)
-        valid = torch.zeros(R * self.width, dtype=torch.bool, device=values.device)
-        valid[self.slot] = True
-        return fill_padding(out, valid.reshape(R, self.width))
+        counts = self.start[1:] - self.start[:-1]
+        S = max(1, int(counts.max())) if R else 1
+        col = torch.arange(values.shape[0], device=values.device) - self.start[self.ray]
+        out = values.new_zeros(R, S).index_put((self.ray, col), values)
+        return fill_padding(out, torch.arange(S, device=values.device) < counts[:, None])  # samples lead each row
 
 
 def fill_padding(values: Tensor, valid: Tensor) -> Tensor:
@@ -80,19 +80,15 @@ def packed_direct_weights(sdf: Tensor, z: Tensor, ray: Tensor, n_rays: int, trun
 COLOR_MIN_WEIGHT = 1e-6
 
 
-def render_samples(field, origins: Tensor, dirs: Tensor, samples: RaySamples, truncation: float) -> EheRender:
-    """Query `field` (an `EheField`) at the valid samples o + z d and composite Ĉ = Σ w c, D̂ = Σ w z.
+def render_samples(field, origins: Tensor, dirs: Tensor, samples: PackedSamples, truncation: float) -> EheRender:
+    """Query `field` (an `EheField`) at the samples o + z d and composite Ĉ = Σ w c, D̂ = Σ w z.
 
-    The samples are packed (only the valid ones, in ray order) before anything is computed on them. The SDF is
-    evaluated at every valid sample; the colour decoder only where w > COLOR_MIN_WEIGHT (the bell weights
+    The SDF is evaluated at every sample; the colour decoder only where w > COLOR_MIN_WEIGHT (the bell weights
     σ(s/T)σ(−s/T) vanish a few centimetres from the surface, so most samples cannot change Ĉ; the skipped ones
-    change it by less than 1e-6 each). Args: origins, dirs (R, 3) world; samples from `sample_in_voxels`.
+    change it by less than 1e-6 each). Args: origins, dirs (R, 3) world; samples from `packed_samples_in_voxels`.
     """
-    R, S = samples.z.shape
-    slot = torch.nonzero(samples.valid.reshape(-1)).reshape(-1)
-    ray = torch.div(slot, S, rounding_mode="floor")
-    z = samples.z.reshape(-1)[slot]
-    pts = torch.addcmul(origins[ray], z[:, None], dirs[ray])
+    z, ray, start, pts = samples
+    R = origins.shape[0]
     p, f = field.encode(pts)
     sdf = field.sdf_from(pts, p, f)
     w = packed_direct_weights(sdf, z, ray, R, truncation)
@@ -100,5 +96,4 @@ def render_samples(field, origins: Tensor, dirs: Tensor, samples: RaySamples, tr
     rgb_s = torch.sigmoid(field.rgb_from(p[use], f[use]))
     rgb = torch.zeros(R, 3, dtype=z.dtype, device=z.device).index_add(0, ray[use], w[use, None] * rgb_s)
     depth = torch.zeros(R, dtype=z.dtype, device=z.device).index_add(0, ray, w * z)
-    hit = torch.bincount(ray, minlength=R) > 0
-    return EheRender(rgb, depth, hit, sdf, z, ray, w, slot, S)
+    return EheRender(rgb, depth, start[1:] > start[:-1], sdf, z, ray, w, start)
