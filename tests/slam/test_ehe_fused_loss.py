@@ -8,11 +8,17 @@ import pytest
 import torch
 
 from inrslam.slam.ehe.config import EheConfig
-from inrslam.slam.ehe.fused_loss import fused_losses, fused_weights, ray_starts
+from inrslam.slam.ehe.fused_loss import fused_losses, fused_weights
 from inrslam.slam.ehe.model import EheModel
 from inrslam.slam.ehe.rendering import packed_direct_weights
 
 UNIT = np.array([[0.0, 1.0], [0.0, 1.0], [0.0, 1.0]])
+
+
+def ray_starts(ray, n_rays: int):
+    """(R + 1,) offsets of each ray's samples in a packed, ray-sorted (N,) `ray` index."""
+    counts = torch.bincount(ray, minlength=n_rays)
+    return torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
 
 
 def random_packed(seed: int, R: int = 30, S: int = 10, dtype=torch.float64):

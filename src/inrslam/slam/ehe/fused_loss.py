@@ -157,12 +157,6 @@ def _backward(s, z, b, start, crow, c, C, D, has_d, T, slope, g_rgb, g_depth, g_
             gs[i] = g
 
 
-def ray_starts(ray: Tensor, n_rays: int) -> Tensor:
-    """(R + 1,) offsets of each ray's samples in a packed, ray-sorted (N,) `ray` index."""
-    counts = torch.bincount(ray, minlength=n_rays)
-    return torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
-
-
 def bells(sdf: Tensor, truncation: float) -> tuple[Tensor, Tensor]:
     """(σ(x)σ(−x), 1 − 2σ(x)) at x = s / T of the detached sdf (N,): the bell `bell_weights` and its slope
     (d bell / dx = bell · slope), vectorised in torch."""
@@ -221,9 +215,9 @@ def fused_losses(sdf: Tensor, colors: Tensor, z: Tensor, start: Tensor, crow: Te
     """EHE loss terms of packed samples in one fused pass (CPU).
 
     Args: sdf (N,) T-units; colors (M, 3) in [0, 1] of the samples used for colour; z (N,) metres; start (R + 1,)
-        offsets of each ray's samples (`ray_starts`); crow (N,) int64 the colors row of each sample (−1: not used
-        for colour); rgb (R, 3), depth (R,) metres observed; has_d (R,) bool: the ray's depth is supervised (it has
-        samples and depth inside the range); bell: `bells(sdf, truncation)` if already computed.
+        offsets of each ray's samples (`PackedSamples.start`); crow (N,) int64 the colors row of each sample (−1:
+        not used for colour); rgb (R, 3), depth (R,) metres observed; has_d (R,) bool: the ray's depth is
+        supervised (it has samples and depth inside the range); bell: `bells(sdf, truncation)` if already computed.
     Returns: (4,) [L_rgb, L_depth, L_fs, L_sdf] as `ehe_losses`, and the colour MSE (no gradient).
     """
     b, slope = bells(sdf, truncation) if bell is None else bell
