@@ -1,5 +1,5 @@
 """Inline numba helpers shared by the kernel families: the table row of a vertex, the order in which parallel
-loops deal entries to threads, and the byte tables of the touched-row bitmap (see ``layout.py`` for the maths).
+loops deal entries to threads, and the byte tables and scan of the touched-row bitmap (see ``layout.py`` for the maths).
 
 numba's on-disk cache (``cache=True``) is invalidated only by edits to a kernel's own file, not to the helpers it
 inlines from here (or from ``prefetch.py``): after editing this file, delete the kernels' cache files
@@ -37,3 +37,24 @@ def balanced_entry(i, E):
 BIT_CNT = np.array([bin(m).count("1") for m in range(256)], np.int64)
 BIT_POS = np.array([[b for b in range(8) if (m >> b) & 1] + [0] * (8 - bin(m).count("1")) for m in range(256)],
                     np.int64)
+
+
+@njit(inline="always", cache=True)
+def next_marked_byte(mark, words, b, end):
+    """The first index in [b, end) whose bitmap byte mark[i] is non-zero, else end. ``words`` is mark's first
+    ⌊len/8⌋·8 bytes viewed as uint64: an 8-aligned all-zero word is passed in one read (a table's touched rows are
+    a few per cent of its rows, so most words are zero)."""
+    while b < end:
+        if (b & 7) == 0 and b + 8 <= end and words[b >> 3] == 0:
+            b += 8
+            continue
+        if mark[b] != 0:
+            return b
+        b += 1
+    return end
+
+
+@njit(inline="always", cache=True)
+def mark_words(mark):
+    """mark (uint8, contiguous) as uint64 words over its first ⌊len/8⌋·8 bytes, for ``next_marked_byte``."""
+    return mark[: mark.shape[0] - mark.shape[0] % 8].view(np.uint64)

@@ -9,7 +9,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from inrslam.fields.kernels.indexing import BIT_CNT, BIT_POS, balanced_entry
+from inrslam.fields.kernels.indexing import BIT_CNT, BIT_POS, balanced_entry, mark_words, next_marked_byte
 from inrslam.fields.kernels.prefetch import prefetch_row_w
 
 
@@ -99,10 +99,11 @@ def drain_marked_rows(rows, row_off, mark_off, counts, acc, mark, rows_dst, vals
         k = dst[e]
         base = row_off[e]
         mo = mark_off[e]
-        for b in range(mo, mo + (rows[e] + 7) // 8):
+        words = mark_words(mark)
+        end = mo + (rows[e] + 7) // 8
+        b = next_marked_byte(mark, words, mo, end)
+        while b < end:
             m = mark[b]
-            if m == 0:
-                continue
             mark[b] = 0
             r0 = base + (b - mo) * 8
             for i in range(BIT_CNT[m]):  # the set bits of m, no branch per bit
@@ -112,3 +113,4 @@ def drain_marked_rows(rows, row_off, mark_off, counts, acc, mark, rows_dst, vals
                     vals_dst[k, f] = acc[r, f]
                     acc[r, f] = 0.0
                 k += 1
+            b = next_marked_byte(mark, words, b + 1, end)
