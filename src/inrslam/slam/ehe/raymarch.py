@@ -60,10 +60,23 @@ def voxel_hits(grid: VoxelGrid, origins: Tensor, dirs: Tensor, max_hits: int, t_
     return t_in, t_out, n
 
 
+@njit(inline="always", cache=True)
+def _axis_start(o, d, t0, dim):
+    """DDA state of one axis at the entry point o + t0·d: cell c, step s (±1, 0), the t of the next face tn and the
+    t between faces td (inf when the ray is parallel to the axis)."""
+    c = min(max(int(math.floor(o + t0 * d)), 0), dim - 1)
+    if d > 0.0:
+        return c, 1, (c + 1 - o) / d, 1.0 / d
+    if d < 0.0:
+        return c, -1, (c - o) / d, -1.0 / d
+    return c, 0, np.inf, np.inf
+
+
 @njit(cache=True)
 def _dda(o, d, alloc, nx, ny, nz, t_max, max_hits, t_in, t_out, n_hits):
     """For each ray r (origin o, direction d in voxel units): merged intervals t_in[r, :h], t_out[r, :h] (h =
-    n_hits[r]) of the first max_hits allocated voxels it crosses within t in [0, t_max]."""
+    n_hits[r]) of the first max_hits allocated voxels it crosses within t in [0, t_max]. The walk's state lives in
+    scalars (no per-ray arrays)."""
     dims = (nx, ny, nz)
     for r in range(o.shape[0]):
         n_hits[r] = 0
@@ -79,29 +92,19 @@ def _dda(o, d, alloc, nx, ny, nz, t_max, max_hits, t_in, t_out, n_hits):
                 t1 = -1.0
         if t0 >= t1:
             continue
-        s = np.zeros(3, np.int64)
-        tn = np.full(3, np.inf)
-        td = np.full(3, np.inf)
-        c = np.zeros(3, np.int64)
-        for a in range(3):
-            p = o[r, a] + t0 * d[r, a]
-            c[a] = min(max(int(math.floor(p)), 0), dims[a] - 1)
-            if d[r, a] > 0.0:
-                s[a], td[a] = 1, 1.0 / d[r, a]
-                tn[a] = (c[a] + 1 - o[r, a]) / d[r, a]
-            elif d[r, a] < 0.0:
-                s[a], td[a] = -1, -1.0 / d[r, a]
-                tn[a] = (c[a] - o[r, a]) / d[r, a]
+        c0, s0, tn0, td0 = _axis_start(o[r, 0], d[r, 0], t0, nx)
+        c1, s1, tn1, td1 = _axis_start(o[r, 1], d[r, 1], t0, ny)
+        c2, s2, tn2, td2 = _axis_start(o[r, 2], d[r, 2], t0, nz)
         voxels = 0
         t = t0
         while t < t1:
-            a = 0
-            if tn[1] < tn[a]:
-                a = 1
-            if tn[2] < tn[a]:
-                a = 2
-            t_end = min(tn[a], t1)
-            c0, c1, c2 = c[0], c[1], c[2]
+            # the axis whose face comes first (ties: the lower axis)
+            if tn1 < tn0:
+                a = 2 if tn2 < tn1 else 1
+            else:
+                a = 2 if tn2 < tn0 else 0
+            tn = tn0 if a == 0 else (tn1 if a == 1 else tn2)
+            t_end = min(tn, t1)
             if t_end > t and alloc[c0 + nx * (c1 + ny * c2)]:
                 h = n_hits[r]
                 if h > 0 and t_out[r, h - 1] >= t:
@@ -112,11 +115,22 @@ def _dda(o, d, alloc, nx, ny, nz, t_max, max_hits, t_in, t_out, n_hits):
                 voxels += 1
                 if voxels >= max_hits:
                     break
-            c[a] += s[a]
-            if c[a] < 0 or c[a] >= dims[a]:
-                break
+            if a == 0:
+                c0 += s0
+                if c0 < 0 or c0 >= nx:
+                    break
+                tn0 += td0
+            elif a == 1:
+                c1 += s1
+                if c1 < 0 or c1 >= ny:
+                    break
+                tn1 += td1
+            else:
+                c2 += s2
+                if c2 < 0 or c2 >= nz:
+                    break
+                tn2 += td2
             t = t_end
-            tn[a] += td[a]
 
 
 @njit(cache=True)
