@@ -211,7 +211,7 @@ def test_kernels_called_directly_with_nan_stay_in_bounds(name):
     """The raw numba kernels map a NaN coordinate to the box's low face (a defined row) instead of indexing out of
     range (``multilinear`` never passes them one)."""
     from inrslam.fields.kernels import generic, trilinear
-    from inrslam.fields.kernels.function import _meta, _tri_meta
+    from inrslam.fields.kernels.function import _meta, tri_meta
 
     layout, table, x = _case(name)
     x[:, 0] = float("nan")
@@ -222,9 +222,9 @@ def test_kernels_called_directly_with_nan_stay_in_bounds(name):
     out = np.zeros((x.shape[0], layout.n_entries, tab.shape[1]), np.float32)
     if layout.trilinear:
         no_jac = np.empty((0, layout.n_entries, tab.shape[1], 3), np.float32)
-        trilinear.tri_forward(xn, tab, *_tri_meta(layout), out, no_jac)
+        trilinear.tri_forward(xn, tab, *tri_meta(layout), out, no_jac)
         grad = np.zeros_like(tab)
-        trilinear.tri_backward_table_dense(xn, np.ones_like(out), *_tri_meta(layout), grad)
+        trilinear.tri_backward_table_dense(xn, np.ones_like(out), *tri_meta(layout), grad)
         assert np.isfinite(grad).all()
     else:
         generic.interp_forward(xn, tab, *_meta(layout), out)

@@ -82,7 +82,8 @@ def _meta(layout: TableLayout):
             layout.rows, layout.row_off)
 
 
-def _tri_meta(layout: TableLayout):
+def tri_meta(layout: TableLayout):
+    """The layout arrays the trilinear kernels take: (res, scale, offset, lo, hi, stride, hashed, rows, row_off)."""
     return (layout.res, layout.scale, layout.offset, layout.lo, layout.hi, layout.stride, layout.hashed,
             layout.rows, layout.row_off)
 
@@ -133,7 +134,7 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, 
     if not sparse:
         grad = torch.zeros(M, F, dtype=dtype)
         if layout.trilinear:
-            trilinear.tri_backward_table_dense(xn, g, *_tri_meta(layout), grad.numpy())
+            trilinear.tri_backward_table_dense(xn, g, *tri_meta(layout), grad.numpy())
         else:
             generic.interp_backward_table_dense(xn, g, *_meta(layout), grad.numpy())
         return grad
@@ -141,7 +142,7 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, 
         acc, mark_off, mark = _accumulator(layout, F, g.dtype)
         gT = _level_major(g, layout)  # (E,N,F): each level reads its gradient contiguously
         counts = np.zeros(layout.n_entries, np.int64)
-        trilinear.tri_backward_table_acc(xn, gT, *_tri_meta(layout), mark_off, acc, mark, counts)
+        trilinear.tri_backward_table_acc(xn, gT, *tri_meta(layout), mark_off, acc, mark, counts)
         return _sparse_grad(layout, shape, g.dtype, counts,
                             lambda rows, vals: sparse_rows.drain_marked_rows(layout.rows, layout.row_off, mark_off,
                                                                              counts, acc, mark, rows, vals))
@@ -149,7 +150,7 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, 
         parts = _row_parts(layout)
         cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], F, g.dtype, parts)
         counts = np.zeros(layout.n_entries * parts, np.int64)
-        trilinear.tri_backward_table_sparse(xn, g, *_tri_meta(layout), row_slots(layout), parts, PART_LOG2, cap_off,
+        trilinear.tri_backward_table_sparse(xn, g, *tri_meta(layout), row_slots(layout), parts, PART_LOG2, cap_off,
                                             out_rows, out_vals, counts)
     else:
         cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], F, g.dtype)
@@ -275,7 +276,7 @@ class MultilinearFn(torch.autograd.Function):
             # one lookup for both: keep ∂out/∂xn for the input backward (an empty array: no Jacobian)
             jac = np.empty((xn.shape[0] if ctx.needs_input_grad[0] else 0, layout.n_entries, tab.shape[1], 3),
                            dtype=xn_np.dtype)
-            trilinear.tri_forward(xn_np, tab.numpy(), *_tri_meta(layout), out.numpy(), jac)
+            trilinear.tri_forward(xn_np, tab.numpy(), *tri_meta(layout), out.numpy(), jac)
             ctx.jac = jac if ctx.needs_input_grad[0] else None
         else:
             out = torch.zeros(xn.shape[0], layout.n_entries, tab.shape[1], dtype=tab.dtype)
@@ -321,7 +322,7 @@ def _forward_with_jac(xn_np: np.ndarray, tab_np: np.ndarray, layout: TableLayout
         out = np.empty((N, E, F), tab_np.dtype)
         jac = np.empty((N, E, F, 3), tab_np.dtype)
         hess = np.empty((N, E, F, 3), tab_np.dtype)
-        trilinear.tri_forward_jac_hess(xn_np, tab_np, *_tri_meta(layout), out, jac, hess)
+        trilinear.tri_forward_jac_hess(xn_np, tab_np, *tri_meta(layout), out, jac, hess)
     else:
         out = np.zeros((N, E, F), tab_np.dtype)
         jac = np.zeros((N, E, F, 3), tab_np.dtype)
@@ -341,7 +342,7 @@ def table_grad_jac_numba(xn: np.ndarray, g: np.ndarray, gj: np.ndarray, layout: 
     if layout.trilinear and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
         acc, mark_off, mark = _accumulator(layout, F, g.dtype)
         counts = np.zeros(layout.n_entries, np.int64)
-        trilinear.tri_backward_table_jac_acc(xn, _level_major(g, layout), gj, *_tri_meta(layout), mark_off, acc, mark,
+        trilinear.tri_backward_table_jac_acc(xn, _level_major(g, layout), gj, *tri_meta(layout), mark_off, acc, mark,
                                              counts)
         return _sparse_grad(layout, shape, g.dtype, counts,
                             lambda rows, vals: sparse_rows.drain_marked_rows(layout.rows, layout.row_off, mark_off,
@@ -350,7 +351,7 @@ def table_grad_jac_numba(xn: np.ndarray, g: np.ndarray, gj: np.ndarray, layout: 
         parts = _row_parts(layout)
         cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], shape[1], g.dtype, parts)
         counts = np.zeros(layout.n_entries * parts, np.int64)
-        trilinear.tri_backward_table_jac_sparse(xn, g, gj, *_tri_meta(layout), row_slots(layout), parts, PART_LOG2,
+        trilinear.tri_backward_table_jac_sparse(xn, g, gj, *tri_meta(layout), row_slots(layout), parts, PART_LOG2,
                                                 cap_off, out_rows, out_vals, counts)
     else:
         cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], shape[1], g.dtype)

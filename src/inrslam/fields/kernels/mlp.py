@@ -23,10 +23,10 @@ BLOCK = 1024
 
 #: LLVM may reorder sums and fuse multiply-adds (so the loops vectorise) but not assume finite values: a NaN input
 #: stays NaN in the output, as in the reference.
-_FASTMATH = {"reassoc", "contract", "arcp", "nsz"}
+FASTMATH = {"reassoc", "contract", "arcp", "nsz"}
 
 
-@njit(inline="always", cache=True, fastmath=_FASTMATH)
+@njit(inline="always", cache=True, fastmath=FASTMATH)
 def _hidden(x, n, w1t, h):  # pragma: no cover - numba
     """Sample n's hidden layer relu(x[n] w1t) into h (H,)."""
     h[:] = 0
@@ -39,7 +39,7 @@ def _hidden(x, n, w1t, h):  # pragma: no cover - numba
             h[j] = 0.0
 
 
-@njit(parallel=True, cache=True, fastmath=_FASTMATH)
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _forward(x, w1t, w2, out):  # pragma: no cover - numba
     """x (N, I), w1t (I, H), w2 (O, H) -> out (N, O) = relu(x w1t) w2^T."""
     n_pts, n_in = x.shape
@@ -57,7 +57,7 @@ def _forward(x, w1t, w2, out):  # pragma: no cover - numba
                 out[n, o] = s
 
 
-@njit(parallel=True, cache=True, fastmath=_FASTMATH)
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _backward(x, w1t, w2, gy, need_x, need_w, gx, gw1t_parts, gw2_parts):  # pragma: no cover - numba
     """Gradients of out = relu(x w1t) w2^T for the output gradient gy (N, O): gx (N, I) when need_x, and per-block
     weight gradients gw1t_parts (B, I, H), gw2_parts (B, O, H) when need_w (summed over blocks by the caller)."""

@@ -86,6 +86,12 @@ def _tri_weights(wx, wy, wz):
             ux * uy * wz, wx * uy * wz, ux * wy * wz, wx * wy * wz)
 
 
+#: Public names of the corner rule (rows, weights, du/dp̂ of a point in one entry) and of the corner weights, for
+#: kernels that fuse a trilinear lookup with other work (`inrslam.slam.ehe.sdf_kernel`).
+tri_corners = _tri
+tri_weights = _tri_weights
+
+
 #: Points per block of the two-pass trilinear kernels: pass 1 computes the rows and weights of a block of points
 #: (arithmetic only), pass 2 gathers / scatters with independent loads, so many cache misses are in flight at once.
 _BLOCK = 64

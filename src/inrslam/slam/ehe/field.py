@@ -3,6 +3,8 @@ decoded from one 2 cm dense feature level; colour decoded from the same features
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import torch
 from torch import Tensor, nn
@@ -11,6 +13,7 @@ from inrslam.fields.config import KernelChoice
 from inrslam.fields.encoders import GridEncoder
 from inrslam.fields.models import FieldOutput, grid_decoder, run_grid_decoder
 from inrslam.slam.ehe.config import EheConfig
+from inrslam.slam.ehe.sdf_kernel import ehe_sdf, fusable
 from inrslam.slam.ehe.voxels import VoxelGrid
 
 
@@ -50,7 +53,14 @@ class EheField(nn.Module):
         return p, self.grid(p)
 
     def sdf_from(self, x: Tensor, p: Tensor, f: Tensor) -> Tensor:
-        """s = s_prior(x) + D_s([f, p̂]), (N,) T-units, from `encode`'s outputs."""
+        """s = s_prior(x) + D_s([f, p̂]), (N,) T-units, from `encode`'s outputs.
+
+        With the fused kernels on (`field.kernel` and `field.decoder_kernel` not torch) and CPU tensors, one numba
+        pass each way (`sdf_kernel.ehe_sdf`); else the prior lookup, then the decoder (the reference)."""
+        w1, w2 = cast(nn.Linear, self.sdf_net[0]).weight, cast(nn.Linear, self.sdf_net[2]).weight
+        if (self.decoder_kernel != "torch" and self.voxels.priors.kernel != KernelChoice.TORCH
+                and fusable(x, f, self.voxels.priors.table, w1, w2)):
+            return ehe_sdf(x, f, p, self.voxels, w1, w2)
         return self.voxels.prior_at(x) + self._dec(self.sdf_net, torch.cat([f, p], dim=-1))[:, 0]
 
     def rgb_from(self, p: Tensor, f: Tensor) -> Tensor:

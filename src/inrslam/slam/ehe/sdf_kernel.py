@@ -1,0 +1,193 @@
+"""Fused EHE SDF on CPU tensors (docs/ehe.md §3): s = s_prior(x) + D_s([f, p̂]) in one numba pass each way.
+
+The reference is the composition `VoxelGrid.prior_at(x) + D_s(cat[f, p̂])` (the voxel priors' trilinear lookup
+through the table kernels, then the decoder), which `EheField.sdf_from` runs with `field.kernel=torch` or
+`field.decoder_kernel=torch`; the tests compare the two (values and every gradient). Fusing saves the priors' own
+lookup pass and its backward, the decoder input's concatenation and, in the backward, the input gradient of p̂
+(the sample positions are given: no gradient flows to them).
+
+Determinism: the decoder's weight gradients are summed per block of `mlp.BLOCK` samples, blocks in order, and the
+priors' gradient is scattered in sample order by one thread, so results do not depend on the thread count.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numba import njit, prange
+
+from inrslam.fields.kernels.function import second_order_active, tri_meta
+from inrslam.fields.kernels.mlp import BLOCK, FASTMATH
+from inrslam.fields.kernels.trilinear import tri_corners, tri_weights
+
+
+@njit(inline="always", cache=True)
+def _corners(x, n, origin, extent, res, scale, offset, lo, hi, stride, hashed, rows, row_off):
+    """Rows r0..r7 and weights wx, wy, wz (`tri_weights`) of sample n in the voxel-vertex lattice, as
+    `VoxelGrid.prior_at`: p = (x − origin) / extent in x's precision, then the table kernels' corner rule."""
+    p0 = np.float64((x[n, 0] - origin[0]) / extent[0])
+    p1 = np.float64((x[n, 1] - origin[1]) / extent[1])
+    p2 = np.float64((x[n, 2] - origin[2]) / extent[2])
+    r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz, _a, _b, _c = tri_corners(p0, p1, p2, 0, res, scale, offset, lo, hi,
+                                                                        stride, hashed, rows, row_off)
+    return r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz
+
+
+@njit(inline="always", cache=True)
+def _hidden(f, p, n, w1t, h):
+    """h = [f[n], p[n]] w1t (pre-activation, (H,))."""
+    nf = f.shape[1]
+    h[:] = 0
+    for i in range(nf):
+        xi = f[n, i]
+        for j in range(w1t.shape[1]):
+            h[j] += xi * w1t[i, j]
+    for i in range(p.shape[1]):
+        xi = p[n, i]
+        for j in range(w1t.shape[1]):
+            h[j] += xi * w1t[nf + i, j]
+
+
+@njit(inline="always", cache=True)
+def _finite3(x, n):
+    return x[n, 0] == x[n, 0] and x[n, 1] == x[n, 1] and x[n, 2] == x[n, 2]
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def _forward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, rows, row_off, prior, f, p, w1t, w2,
+             out):  # pragma: no cover - numba
+    """out (N,) = Σ_c w_c prior[r_c] + relu([f, p] w1t) · w2[0]; NaN where x has a NaN coordinate."""
+    n_pts = x.shape[0]
+    n_hid = w1t.shape[1]
+    for b in prange((n_pts + BLOCK - 1) // BLOCK):
+        h = np.empty(n_hid, dtype=w1t.dtype)
+        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
+            if not _finite3(x, n):
+                out[n] = np.nan
+                continue
+            r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz = _corners(x, n, origin, extent, res, scale, offset, lo, hi,
+                                                                  stride, hashed, rows, row_off)
+            w = tri_weights(wx, wy, wz)
+            s = (w[0] * prior[r0, 0] + w[1] * prior[r1, 0] + w[2] * prior[r2, 0] + w[3] * prior[r3, 0]
+                 + w[4] * prior[r4, 0] + w[5] * prior[r5, 0] + w[6] * prior[r6, 0] + w[7] * prior[r7, 0])
+            _hidden(f, p, n, w1t, h)
+            d = 0.0
+            for j in range(n_hid):
+                hj = h[j]
+                if hj < 0.0:  # (not max(): a NaN stays NaN, as in the reference)
+                    hj = 0.0
+                d += hj * w2[0, j]
+            out[n] = s + d
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def _backward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, rows, row_off, f, p, w1t, w2, g,
+              g_prior, g_f, gw1t_parts, gw2_parts):  # pragma: no cover - numba
+    """For the output gradient g (N,): g_prior (V, 1) (pre-zeroed, += w_c g), g_f (N, F) and per-block weight
+    gradients gw1t_parts (B, I, H), gw2_parts (B, 1, H). Samples with a NaN coordinate contribute nothing."""
+    n_pts = x.shape[0]
+    n_hid = w1t.shape[1]
+    nf = f.shape[1]
+    n_in = w1t.shape[0]
+    for b in prange((n_pts + BLOCK - 1) // BLOCK):
+        h = np.empty(n_hid, dtype=w1t.dtype)
+        gh = np.empty(n_hid, dtype=w1t.dtype)
+        acc1 = np.zeros((n_in, n_hid), dtype=w1t.dtype)
+        acc2 = np.zeros((1, n_hid), dtype=w1t.dtype)
+        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
+            if not _finite3(x, n):
+                for i in range(nf):
+                    g_f[n, i] = 0.0
+                continue
+            gn = g[n]
+            _hidden(f, p, n, w1t, h)
+            for j in range(n_hid):
+                if h[j] > 0.0:
+                    gh[j] = gn * w2[0, j]
+                    acc2[0, j] += gn * h[j]
+                else:
+                    gh[j] = 0.0
+            for i in range(nf):
+                s = 0.0
+                for j in range(n_hid):
+                    s += gh[j] * w1t[i, j]
+                g_f[n, i] = s
+            for i in range(nf):
+                xi = f[n, i]
+                for j in range(n_hid):
+                    acc1[i, j] += xi * gh[j]
+            for i in range(p.shape[1]):
+                xi = p[n, i]
+                for j in range(n_hid):
+                    acc1[nf + i, j] += xi * gh[j]
+        gw1t_parts[b] = acc1
+        gw2_parts[b] = acc2
+    for n in range(n_pts):  # the priors: one thread, sample order
+        if not _finite3(x, n):
+            continue
+        r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz = _corners(x, n, origin, extent, res, scale, offset, lo, hi,
+                                                              stride, hashed, rows, row_off)
+        w = tri_weights(wx, wy, wz)
+        gn = np.float64(g[n])
+        g_prior[r0, 0] += w[0] * gn
+        g_prior[r1, 0] += w[1] * gn
+        g_prior[r2, 0] += w[2] * gn
+        g_prior[r3, 0] += w[3] * gn
+        g_prior[r4, 0] += w[4] * gn
+        g_prior[r5, 0] += w[5] * gn
+        g_prior[r6, 0] += w[6] * gn
+        g_prior[r7, 0] += w[7] * gn
+
+
+class EheSdfFn(torch.autograd.Function):
+    """s (N,) of world samples x (N, 3), dense-level features f (N, F) and p̂ (N, 3); differentiable in f, the
+    prior table (V, 1) and both decoder weights (x and p̂ get no gradient). Once differentiable."""
+
+    @staticmethod
+    def forward(ctx, x, f, p, prior, w1, w2, voxels):
+        xc, fc, pc = x.detach().contiguous(), f.detach().contiguous(), p.detach().contiguous()
+        w1t = w1.detach().t().contiguous()
+        w2c = w2.detach().contiguous()
+        extent = voxels.origin.new_tensor(voxels.dims) * voxels.voxel_size
+        origin = voxels.origin.detach().contiguous()
+        meta = tri_meta(voxels.priors.layout)
+        out = np.empty(xc.shape[0], dtype=w1t.numpy().dtype)
+        _forward(xc.numpy(), origin.numpy(), extent.numpy(), *meta, prior.detach().numpy(), fc.numpy(), pc.numpy(),
+                 w1t.numpy(), w2c.numpy(), out)
+        ctx.save_for_backward(xc, fc, pc, w1t, w2c, origin, extent)
+        ctx.meta = meta
+        ctx.n_prior = prior.shape[0]
+        return torch.from_numpy(out)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):
+        xc, fc, pc, w1t, w2c, origin, extent = ctx.saved_tensors
+        dtype = w1t.numpy().dtype
+        n, n_hid = xc.shape[0], w1t.shape[1]
+        n_blocks = (n + BLOCK - 1) // BLOCK
+        g_prior = np.zeros((ctx.n_prior, 1), dtype=dtype)
+        g_f = np.empty(fc.shape, dtype=dtype)
+        gw1t = np.zeros((n_blocks, w1t.shape[0], n_hid), dtype=dtype)
+        gw2 = np.zeros((n_blocks, 1, n_hid), dtype=dtype)
+        _backward(xc.numpy(), origin.numpy(), extent.numpy(), *ctx.meta, fc.numpy(), pc.numpy(), w1t.numpy(),
+                  w2c.numpy(), g.detach().to(w1t.dtype).contiguous().numpy(), g_prior, g_f, gw1t, gw2)
+        gw1 = torch.from_numpy(gw1t.sum(axis=0)).t().contiguous()  # blocks summed in a fixed order
+        gw2_t = torch.from_numpy(gw2.sum(axis=0))
+        return None, torch.from_numpy(g_f), None, torch.from_numpy(g_prior), gw1, gw2_t, None
+
+
+def fusable(x: torch.Tensor, f: torch.Tensor, prior: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> bool:
+    """True where `ehe_sdf` can run: CPU float32/float64 tensors of one dtype, a one-output decoder, first-order."""
+    tensors = (x, f, prior, w1, w2)
+    return (all(t.device.type == "cpu" for t in tensors) and len({t.dtype for t in tensors}) == 1
+            and x.dtype in (torch.float32, torch.float64) and w2.shape[0] == 1 and not second_order_active())
+
+
+def ehe_sdf(x: torch.Tensor, f: torch.Tensor, p: torch.Tensor, voxels, w1: torch.Tensor,
+            w2: torch.Tensor) -> torch.Tensor:
+    """s = prior(x) + relu([f, p̂] w1^T) w2^T, (N,) T-units, fused (check `fusable` first).
+
+    Args: x (N, 3) world metres; f (N, F) dense-level features; p (N, 3) normalised positions; voxels the
+    `VoxelGrid` (its prior table and lattice); w1 (H, F + 3), w2 (1, H) the SDF decoder's weights."""
+    return EheSdfFn.apply(x, f, p, voxels.priors.table, w1, w2, voxels)
