@@ -4,7 +4,15 @@ load time (`inrslam.config.ranges`)."""
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
+
+
+class MeshVoxels(str, enum.Enum):
+    """Voxels marching cubes runs over: every allocated one, or only those whose 8 priors were initialised."""
+
+    ALLOCATED = "allocated"
+    INITIALISED = "initialised"
 
 
 @dataclass
@@ -41,4 +49,5 @@ class EheConfig:
     free_space_weight: float = 10.0  # weight of the free-space loss (s - 1)^2 in front of z < D - T
     sdf_weight: float = 50000.0  # weight of the SDF loss (z + s T - D)^2 inside |z - D| <= T
     mesh_samples: int = 8  # SDF samples per voxel edge for the mesh (marching cubes)
+    mesh_voxels: MeshVoxels = MeshVoxels.ALLOCATED  # mesh over allocated voxels | initialised (all 8 priors)
 

@@ -150,8 +150,10 @@ class EheSystem(SlamSystem):
 
     # -- results -----------------------------------------------------------------------------------------------
     def mesh(self) -> trimesh.Trimesh | None:
-        """Marching cubes over the voxels (`ehe.mesh_samples` per edge); None and an `empty_mesh` event if empty."""
-        mesh = voxel_mesh(self.field, self.cfg.ehe.mesh_samples, self.cfg.mesh.chunk, self.cfg.mesh.color)
+        """Marching cubes over the voxels (`ehe.mesh_samples` per edge, `ehe.mesh_voxels`); None and an `empty_mesh`
+        event if empty."""
+        mesh = voxel_mesh(self.field, self.cfg.ehe.mesh_samples, self.cfg.mesh.chunk, self.cfg.mesh.color,
+                          self.cfg.ehe.mesh_voxels)
         if mesh is None:
             self._event(self.state.next_frame - 1, "empty_mesh")
         return mesh
@@ -160,7 +162,8 @@ class EheSystem(SlamSystem):
         info = super().progress_info(i)
         vs = self.cfg.ehe.voxel_size
         info["mesh"] = lambda resolution: voxel_mesh(self.field, max(1, int(round(vs / resolution))),
-                                                     self.cfg.mesh.chunk, self.cfg.mesh.color)
+                                                     self.cfg.mesh.chunk, self.cfg.mesh.color,
+                                                     self.cfg.ehe.mesh_voxels)
         return info
 
     def process_metrics(self) -> dict[str, Any]:
