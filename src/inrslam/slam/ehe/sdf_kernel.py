@@ -6,8 +6,10 @@ through the table kernels, then the decoder), which `EheField.sdf_from` runs wit
 lookup pass and its backward, the decoder input's concatenation and, in the backward, the input gradient of p̂
 (the sample positions are given: no gradient flows to them).
 
-Determinism: the decoder's weight gradients are summed per block of `mlp.BLOCK` samples, blocks in order, and the
-priors' gradient is scattered in sample order by one thread, so results do not depend on the thread count.
+The decoder runs block by block through BLAS as `fields.kernels.mlp` (the block's inputs [f, p̂] gathered into one
+array); the priors' interpolation and, in the backward, their scatter run per sample. Determinism: the decoder's
+weight gradients are summed per block of `mlp.BLOCK` samples, blocks in order, and the priors' gradient is
+scattered in sample order by one thread, so results do not depend on the thread count.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import torch
 from numba import njit, prange
 
 from inrslam.fields.kernels.function import second_order_active, tri_meta
-from inrslam.fields.kernels.mlp import BLOCK, FASTMATH
+from inrslam.fields.kernels.mlp import BLOCK, FASTMATH, relu_inplace, relu_mask_inplace
 from inrslam.fields.kernels.trilinear import tri_corners, tri_weights
 
 
@@ -34,34 +36,40 @@ def _corners(x, n, origin, extent, res, scale, offset, lo, hi, stride, hashed, r
 
 
 @njit(inline="always", cache=True)
-def _hidden(f, p, n, w1t, h):
-    """h = [f[n], p[n]] w1t (pre-activation, (H,))."""
-    nf = f.shape[1]
-    h[:] = 0
-    for i in range(nf):
-        xi = f[n, i]
-        for j in range(w1t.shape[1]):
-            h[j] += xi * w1t[i, j]
-    for i in range(p.shape[1]):
-        xi = p[n, i]
-        for j in range(w1t.shape[1]):
-            h[j] += xi * w1t[nf + i, j]
+def _finite3(x, n):
+    return x[n, 0] == x[n, 0] and x[n, 1] == x[n, 1] and x[n, 2] == x[n, 2]
 
 
 @njit(inline="always", cache=True)
-def _finite3(x, n):
-    return x[n, 0] == x[n, 0] and x[n, 1] == x[n, 1] and x[n, 2] == x[n, 2]
+def _inputs(x, f, p, n0, n1, xin):
+    """xin[:m] = [f, p] of samples n0..n1−1 (m = n1 − n0), a zero row for a sample whose x has a NaN."""
+    nf = f.shape[1]
+    for k in range(n1 - n0):
+        n = n0 + k
+        ok = _finite3(x, n)
+        for i in range(nf):
+            xin[k, i] = f[n, i] if ok else 0.0
+        for i in range(p.shape[1]):
+            xin[k, nf + i] = p[n, i] if ok else 0.0
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _forward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, rows, row_off, prior, f, p, w1t, w2,
              out):  # pragma: no cover - numba
-    """out (N,) = Σ_c w_c prior[r_c] + relu([f, p] w1t) · w2[0]; NaN where x has a NaN coordinate."""
+    """out (N,) = Σ_c w_c prior[r_c] + relu([f, p] w1t) · w2[0]; NaN where x has a NaN coordinate. The decoder runs
+    block by block through BLAS, as `mlp._forward`."""
     n_pts = x.shape[0]
-    n_hid = w1t.shape[1]
+    w2t = np.ascontiguousarray(w2.T)
     for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        h = np.empty(n_hid, dtype=w1t.dtype)
-        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
+        n0 = b * BLOCK
+        n1 = min(n_pts, n0 + BLOCK)
+        xin = np.empty((n1 - n0, w1t.shape[0]), dtype=w1t.dtype)
+        _inputs(x, f, p, n0, n1, xin)
+        h = np.dot(xin, w1t)
+        relu_inplace(h)
+        d = np.dot(h, w2t)
+        for k in range(n1 - n0):
+            n = n0 + k
             if not _finite3(x, n):
                 out[n] = np.nan
                 continue
@@ -70,14 +78,7 @@ def _forward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, rows
             w = tri_weights(wx, wy, wz)
             s = (w[0] * prior[r0, 0] + w[1] * prior[r1, 0] + w[2] * prior[r2, 0] + w[3] * prior[r3, 0]
                  + w[4] * prior[r4, 0] + w[5] * prior[r5, 0] + w[6] * prior[r6, 0] + w[7] * prior[r7, 0])
-            _hidden(f, p, n, w1t, h)
-            d = 0.0
-            for j in range(n_hid):
-                hj = h[j]
-                if hj < 0.0:  # (not max(): a NaN stays NaN, as in the reference)
-                    hj = 0.0
-                d += hj * w2[0, j]
-            out[n] = s + d
+            out[n] = s + d[k, 0]
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -86,42 +87,23 @@ def _backward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, row
     """For the output gradient g (N,): g_prior (V, 1) (pre-zeroed, += w_c g), g_f (N, F) and per-block weight
     gradients gw1t_parts (B, I, H), gw2_parts (B, 1, H). Samples with a NaN coordinate contribute nothing."""
     n_pts = x.shape[0]
-    n_hid = w1t.shape[1]
     nf = f.shape[1]
-    n_in = w1t.shape[0]
+    w1f = np.ascontiguousarray(w1t[:nf])  # (F, H): the rows of the feature inputs
     for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        h = np.empty(n_hid, dtype=w1t.dtype)
-        gh = np.empty(n_hid, dtype=w1t.dtype)
-        acc1 = np.zeros((n_in, n_hid), dtype=w1t.dtype)
-        acc2 = np.zeros((1, n_hid), dtype=w1t.dtype)
-        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
-            if not _finite3(x, n):
-                for i in range(nf):
-                    g_f[n, i] = 0.0
-                continue
-            gn = g[n]
-            _hidden(f, p, n, w1t, h)
-            for j in range(n_hid):
-                if h[j] > 0.0:
-                    gh[j] = gn * w2[0, j]
-                    acc2[0, j] += gn * h[j]
-                else:
-                    gh[j] = 0.0
-            for i in range(nf):
-                s = 0.0
-                for j in range(n_hid):
-                    s += gh[j] * w1t[i, j]
-                g_f[n, i] = s
-            for i in range(nf):
-                xi = f[n, i]
-                for j in range(n_hid):
-                    acc1[i, j] += xi * gh[j]
-            for i in range(p.shape[1]):
-                xi = p[n, i]
-                for j in range(n_hid):
-                    acc1[nf + i, j] += xi * gh[j]
-        gw1t_parts[b] = acc1
-        gw2_parts[b] = acc2
+        n0 = b * BLOCK
+        n1 = min(n_pts, n0 + BLOCK)
+        m = n1 - n0
+        xin = np.empty((m, w1t.shape[0]), dtype=w1t.dtype)
+        _inputs(x, f, p, n0, n1, xin)
+        gb = np.empty((m, 1), dtype=w1t.dtype)
+        for k in range(m):
+            gb[k, 0] = g[n0 + k] if _finite3(x, n0 + k) else 0.0
+        h = np.dot(xin, w1t)
+        gh = np.dot(gb, w2)
+        relu_mask_inplace(h, gh)
+        g_f[n0:n1] = np.dot(gh, w1f.T)
+        gw1t_parts[b] = np.dot(xin.T, gh)
+        gw2_parts[b] = np.dot(gb.T, h)
     for n in range(n_pts):  # the priors: one thread, sample order
         if not _finite3(x, n):
             continue
