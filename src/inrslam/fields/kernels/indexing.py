@@ -3,7 +3,8 @@ loops deal entries to threads, and the byte tables and scan of the touched-row b
 
 numba's on-disk cache (``cache=True``) is invalidated only by edits to a kernel's own file, not to the helpers it
 inlines from here (or from ``prefetch.py``): after editing this file, delete the kernels' cache files
-(``__pycache__/{generic,trilinear,sparse_rows}.*.nb[ic]``).
+(``__pycache__/{generic,trilinear,sparse_rows}.*.nb[ic]``, and ``slam/ehe/__pycache__/sdf_kernel.*.nb[ic]``, whose
+kernels inline the trilinear corner rule and the decoder's ReLU helpers).
 """
 
 from __future__ import annotations

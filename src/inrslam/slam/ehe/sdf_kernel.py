@@ -9,7 +9,8 @@ lookup pass and its backward, the decoder input's concatenation and, in the back
 The decoder runs block by block through BLAS as `fields.kernels.mlp` (the block's inputs [f, p̂] gathered into one
 array); the priors' interpolation and, in the backward, their scatter run per sample. Determinism: the decoder's
 weight gradients are summed per block of `mlp.BLOCK` samples, blocks in order, and the priors' gradient is
-scattered in sample order by one thread, so results do not depend on the thread count.
+scattered in sample order by one thread, so results do not depend on the thread count. (The kernels inline helpers
+of `fields.kernels.trilinear` and `.mlp`: numba's cache does not see edits there, see `fields.kernels.indexing`.)
 """
 
 from __future__ import annotations
