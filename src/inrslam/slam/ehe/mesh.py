@@ -22,7 +22,7 @@ def _lattice(ijk: np.ndarray, n: int) -> np.ndarray:
 def voxel_mesh(field: EheField, n: int = 8, chunk: int = 65536, color: bool = True,
                voxels: str = "allocated") -> trimesh.Trimesh | None:
     """Marching cubes at s = 0 over the allocated voxels (`voxels` "allocated"), or only those whose 8 priors were
-    initialised ("initialised"; on the built-in scenes that left 5-8 % of the seen surface out, docs/ehe.md §6).
+    initialised ("initialised"; on the built-in scenes that left 3-13 % of the seen surface out, docs/ehe.md §6).
 
     The field is sampled every voxel_size/n metres on one lattice shared by neighbouring voxels (so the surface is
     continuous across faces); only cubes whose 8 corners were sampled run (skimage `mask`: the cubes of those voxels,
