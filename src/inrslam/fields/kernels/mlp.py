@@ -6,10 +6,11 @@ into blocks of ``BLOCK``, run each block's three small matrix products through B
 output, and in the backward the input and weight gradients) and the ReLU and its mask in place on the block, so a
 block's (BLOCK, 32) hidden array stays in cache; the backward recomputes it instead of storing it. The reference is
 ``mlp2_torch``; ``mlp2`` dispatches. Results do not depend on the thread count: every block is one set of BLAS
-calls (each below OpenBLAS's single-thread threshold of M·N·K = 262 144 for up to 8 inputs at 32 hidden units) and
-the weight gradients' per-block partial sums are added in block order. (An earlier per-sample kernel, the hidden
-vector in a scratch array, ran at 0.37x this speed; a per-sample kernel of the plane decoder, whose 32x32 middle
-layer is a batched GEMM's job, ran at 0.4x autograd's speed: plane decoders stay in torch.)
+calls (small enough that OpenBLAS runs each on one thread: M·N·K ≤ 262 144 for the 5-7 inputs and 32 hidden units
+of our decoders; tested) and the weight gradients' per-block partial sums are added in block order. (An earlier
+per-sample kernel, the hidden vector in a scratch array, ran at 0.37x this speed; a per-sample kernel of the plane
+decoder, whose 32x32 middle layer is a batched GEMM's job, ran at 0.4x autograd's speed: plane decoders stay in
+torch.)
 """
 
 from __future__ import annotations
