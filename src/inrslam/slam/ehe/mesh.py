@@ -28,8 +28,7 @@ def voxel_mesh(field: EheField, n: int = 8, chunk: int = 65536, color: bool = Tr
     continuous across faces); only cubes whose 8 corners were sampled run (skimage `mask`: the cubes of those voxels,
     and for n = 1 also a voxel whose 8 corners all belong to chosen neighbours). None when no surface.
     """
-    voxels = getattr(voxels, "value", voxels)
-    if voxels not in ("allocated", "initialised"):
+    if voxels not in ("allocated", "initialised"):  # (the config's `MeshVoxels` is a str enum: compares equal)
         raise ValueError(f"voxel_mesh: voxels must be 'allocated' or 'initialised', got {voxels!r}")
     vg = field.voxels
     keys = torch.nonzero(vg.allocated).squeeze(1)

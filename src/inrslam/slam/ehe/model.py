@@ -16,7 +16,7 @@ from inrslam.slam.ehe.config import EheConfig
 from inrslam.slam.ehe.field import EheField
 from inrslam.slam.ehe.fused_loss import bells, fused_losses, fused_weights
 from inrslam.slam.ehe.losses import ehe_losses
-from inrslam.slam.ehe.raymarch import packed_samples_in_voxels
+from inrslam.slam.ehe.raymarch import PackedSamples, packed_samples_in_voxels
 from inrslam.slam.ehe.rendering import COLOR_MIN_WEIGHT, EheRender, render_samples
 
 
@@ -42,12 +42,16 @@ class EheModel(nn.Module):
         """"field": Adam at `lr` on priors and decoders, row-wise lazy Adam on the dense level."""
         return {"field": make_optimizer(self.field, lr)}
 
+    def samples(self, origins: Tensor, dirs: Tensor, generator: torch.Generator | None) -> PackedSamples:
+        """The packed samples of world rays (R, 3) (t = z-depth) inside their hit voxels, every `step` · voxel_size
+        (lattice offset jittered with `generator`; None: centred)."""
+        c = self.ecfg
+        return packed_samples_in_voxels(self.field.voxels, origins, dirs, c.step * c.voxel_size, c.max_hits,
+                                        c.max_depth, generator)
+
     def render(self, origins: Tensor, dirs: Tensor, generator: torch.Generator | None) -> EheRender:
         """Render world rays (R, 3) (t = z-depth): samples inside the hit voxels (jittered with `generator`)."""
-        c = self.ecfg
-        samples = packed_samples_in_voxels(self.field.voxels, origins, dirs, c.step * c.voxel_size, c.max_hits,
-                                           c.max_depth, generator)
-        return render_samples(self.field, origins, dirs, samples, self.truncation)
+        return render_samples(self.field, origins, dirs, self.samples(origins, dirs, generator), self.truncation)
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, depth: Tensor,
              generator: torch.Generator | None) -> dict[str, Tensor]:
@@ -59,8 +63,7 @@ class EheModel(nn.Module):
         c = self.ecfg
         if self.kernel == "torch" or origins.device.type != "cpu":
             return ehe_losses(self.render(origins, dirs, generator), rgb, depth, c)
-        z, ray, start, pts = packed_samples_in_voxels(self.field.voxels, origins, dirs, c.step * c.voxel_size,
-                                                      c.max_hits, c.max_depth, generator)
+        z, ray, start, pts = self.samples(origins, dirs, generator)
         p, f = self.field.encode(pts)
         sdf = self.field.sdf_from(pts, p, f)
         bell = bells(sdf, self.truncation)
