@@ -78,6 +78,24 @@ def test_a_resumed_ehe_run_equals_the_uninterrupted_one(ehe_run, tmp_path):
     assert (out / "trajectory.txt").read_bytes() == (ehe_run / "trajectory.txt").read_bytes()
 
 
+@pytest.mark.parametrize("scene,filtered", [("handheld", True), ("room", False)])
+def test_ehe_maps_noisy_depth_after_the_bilateral_filter_and_clean_depth_as_it_is(scene, filtered):
+    from inrslam.slam.registration import filtered_depth
+
+    cfg = ehe_cfg([f"data.path=builtin:{scene}"])
+    ds = open_dataset(cfg.data)
+    system = system_class(cfg)(cfg, ds)
+    frame = ds[1]
+    mapped = system.mapped_frame(frame)
+    if filtered:  # handheld: 4 mm at 1 m, above the 2 mm gate
+        assert np.array_equal(mapped.depth, filtered_depth(frame.depth, cfg.slam.gicp).astype(np.float32))
+        assert not np.array_equal(mapped.depth, frame.depth) and np.array_equal(mapped.rgb, frame.rgb)
+    else:  # noise-free depth: the gate leaves the frame itself
+        assert mapped is frame
+    off = ehe_cfg([f"data.path=builtin:{scene}", "slam.map_filtered_depth=false"])
+    assert system_class(off)(off, ds).mapped_frame(frame) is frame
+
+
 def test_ehe_config_errors_are_one_line(capsys, tmp_path):
     with pytest.raises(ConfigError, match="unknown config key 'ehe.voxel_sise'.*did you mean 'ehe.voxel_size'"):
         load_config(preset="ehe", overrides=["ehe.voxel_sise=0.1"])

@@ -22,6 +22,7 @@ from inrslam.slam.ehe.model import EheModel
 from inrslam.slam.ehe.state import EheState
 from inrslam.slam.frame_tensors import FrameTensors
 from inrslam.slam.keyframes import KeyframeStore
+from inrslam.slam.registration import filtered_depth
 from inrslam.slam.system import SlamRunConfig, SlamSystem
 
 
@@ -57,7 +58,7 @@ class EheSystem(SlamSystem):
 
     # -- the loop ----------------------------------------------------------------------------------------------
     def _process(self, i: int, frame: Frame) -> None:
-        ft = FrameTensors(frame, self.device)
+        ft = FrameTensors(self.mapped_frame(frame), self.device)
         s = self.state
         s.timestamps[i] = frame.timestamp
         if frame.pose_valid and np.all(np.isfinite(frame.c2w)):
@@ -70,6 +71,14 @@ class EheSystem(SlamSystem):
             self._set_pose(i, c2w)
             self._log({"type": "pose", "frame": i, "source": self.given.source["source"]})
         self._map_ehe(i, ft, c2w)
+
+    def mapped_frame(self, frame: Frame) -> Frame:
+        """The frame the map learns: with `slam.map_filtered_depth` and `slam.gicp.depth_filter` > 0, its depth
+        after the bilateral filter where the depth is noisy enough (`filtered_depth`'s gate); else `frame` itself."""
+        g = self.cfg.slam.gicp
+        if not (self.cfg.slam.map_filtered_depth and g.depth_filter > 0):
+            return frame
+        return self._map_frame(frame, filtered_depth(frame.depth, g))
 
     def _frame_points(self, ft: FrameTensors, c2w: torch.Tensor) -> torch.Tensor:
         """World points (N, 3) of the frame's valid depth (every `point_stride`-th row / column)."""
