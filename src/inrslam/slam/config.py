@@ -179,7 +179,7 @@ class SlamConfig:
     pose_param: PoseParam = PoseParam.QUAT  # pose parameterisation for tracking and BA
     const_velocity: bool = True  # constant-velocity motion prediction
     init: PoseInit = PoseInit.CONST_VELOCITY  # tracking's starting pose: prediction, or GICP onto the previous frame
-    gicp: GicpConfig = field(default_factory=GicpConfig)  # settings of init = gicp
+    gicp: GicpConfig = field(default_factory=GicpConfig)  # init = gicp; its depth filter serves map_filtered_depth
     photo: PhotoConfig = field(default_factory=PhotoConfig)  # photometric refinement (after the initialiser)
     sdf_track: SdfTrackConfig = field(default_factory=SdfTrackConfig)  # point-to-surface refinement (before Adam)
     lost: LostConfig = field(default_factory=LostConfig)  # lost-tracking detection / recovery
@@ -188,8 +188,8 @@ class SlamConfig:
     map_pixels: int = 2048  # rays per mapping iteration drawn from the keyframe store
     map_current_min: int = 100  # min current-frame rays per mapping iteration (max(map_pixels/#KF, this))
     map_lr: float = 0.01  # Adam learning rate of the scene parameters
-    map_filtered_depth: bool = False  # the map learns the depth after slam.gicp's filter (noisy depth only; needs
-    # slam.gicp.depth_filter > 0): tracking still registers the raw depth
+    map_filtered_depth: bool = False  # map noisy depth after slam.gicp's bilateral filter (needs gicp.depth_filter>0)
+    # depth below slam.gicp.filter_min_noise is mapped as measured; tracking still registers the raw depth
     bundle_adjust: bool = True  # optimise keyframe poses (first keyframe fixed) during mapping
     ba_lr: float = 1e-3  # Adam learning rate of keyframe poses
     ba_pose_every: int = 5  # pose step every N mapping iterations (gradients accumulate in between)

@@ -58,7 +58,8 @@ class EheSystem(SlamSystem):
 
     # -- the loop ----------------------------------------------------------------------------------------------
     def _process(self, i: int, frame: Frame) -> None:
-        ft = FrameTensors(self.mapped_frame(frame), self.device)
+        mapped = self.mapped_frame(frame)
+        ft = FrameTensors(mapped, self.device)
         s = self.state
         s.timestamps[i] = frame.timestamp
         if frame.pose_valid and np.all(np.isfinite(frame.c2w)):
@@ -70,7 +71,7 @@ class EheSystem(SlamSystem):
         else:
             self._set_pose(i, c2w)
             self._log({"type": "pose", "frame": i, "source": self.given.source["source"]})
-        self._map_ehe(i, ft, c2w)
+        self._map_ehe(i, ft, c2w, depth_filtered=mapped is not frame)
 
     def mapped_frame(self, frame: Frame) -> Frame:
         """The frame the map learns: with `slam.map_filtered_depth` and `slam.gicp.depth_filter` > 0, its depth
@@ -92,7 +93,7 @@ class EheSystem(SlamSystem):
         o, d = world_rays(c2w, dirs * depth[:, None])
         return o + d
 
-    def _map_ehe(self, i: int, ft: FrameTensors, c2w: torch.Tensor) -> None:
+    def _map_ehe(self, i: int, ft: FrameTensors, c2w: torch.Tensor, depth_filtered: bool = False) -> None:
         c, s = self.cfg.ehe, self.state
         t0 = time.perf_counter()
         vg = self.field.voxels
@@ -111,7 +112,7 @@ class EheSystem(SlamSystem):
             s.init_ms = ms
         else:
             s.map_ms.append(ms)
-        self._record(i, ms, res, window, alloc.new.numel(), accepted)
+        self._record(i, ms, res, window, alloc.new.numel(), accepted, depth_filtered)
         last = len(s.kf_voxels) - 1
         if i == 0 or needs_keyframe(voxel_overlap(observed, s.kf_voxels[last]), i - s.store.frame_ids[-1], c):
             self._add_keyframe(i, ft)
@@ -140,7 +141,8 @@ class EheSystem(SlamSystem):
 
         return batch
 
-    def _record(self, i: int, ms: float, res: MapResult, window: list[int], new: int, accepted: int) -> None:
+    def _record(self, i: int, ms: float, res: MapResult, window: list[int], new: int, accepted: int,
+                depth_filtered: bool) -> None:
         s = self.state
         s.proc_psnr += [p for p in res.psnr if np.isfinite(p)]
         s.proc_depth_l1 += [d for d in res.depth_l1 if np.isfinite(d)]
@@ -151,7 +153,8 @@ class EheSystem(SlamSystem):
                    "loss": res.losses[-1] if res.losses else None,
                    "psnr": float(np.nanmean(res.psnr)) if res.psnr else None,
                    "depth_l1": float(np.nanmean(res.depth_l1)) if res.depth_l1 else None,
-                   "voxels": vg.n_allocated, "new_voxels": new, "priors_accepted": accepted})
+                   "voxels": vg.n_allocated, "new_voxels": new, "priors_accepted": accepted,
+                   "depth_filtered": depth_filtered})
 
     def _add_keyframe(self, i: int, ft: FrameTensors) -> None:
         n = max(1, int(round(self.cfg.ehe.kf_ray_fraction * ft.intr.height * ft.intr.width)))
