@@ -87,8 +87,8 @@ def test_the_ehe_loop_maps_noisy_depth_after_the_bilateral_filter_and_clean_dept
     mapped = []  # the depth each frame's mapping (allocation, priors, rays, keyframe store) received
     map_ehe = EheSystem._map_ehe
     monkeypatch.setattr(EheSystem, "_map_ehe",
-                        lambda self, i, ft, c2w, **kw: (mapped.append(ft.depth.numpy().copy()),
-                                                        map_ehe(self, i, ft, c2w, **kw))[1])
+                        lambda self, i, ft, c2w, *a: (mapped.append(ft.depth.numpy().copy()),
+                                                      map_ehe(self, i, ft, c2w, *a))[1])
     for off in (False, True):
         cfg = ehe_cfg([f"data.path=builtin:{scene}", "ehe.first_iters=2", "ehe.iters=1"]
                       + ["slam.map_filtered_depth=false"] * off)
@@ -97,6 +97,13 @@ def test_the_ehe_loop_maps_noisy_depth_after_the_bilateral_filter_and_clean_dept
         records = system.process(0) + system.process(1)
         maps = [r for r in records if r["type"] == "map"]
         assert [r["depth_filtered"] for r in maps] == [filtered and not off] * 2
+        noise = [r["depth_noise"] for r in maps]  # judged per frame (not at all with the key off)
+        if off:
+            assert noise == [None, None]
+        elif filtered:  # handheld: 4 mm at 1 m
+            assert all(0.002 < n < 0.008 for n in noise), noise
+        else:  # room: noise-free (no estimate, or below the gate)
+            assert all(n is None or n < 0.002 for n in noise), noise
         for i in (0, 1):
             raw, got = ds[i].depth, mapped.pop(0).reshape(ds[i].depth.shape)
             if filtered and not off:  # handheld: 4 mm at 1 m, above the 2 mm gate

@@ -22,7 +22,7 @@ from inrslam.slam.ehe.model import EheModel
 from inrslam.slam.ehe.state import EheState
 from inrslam.slam.frame_tensors import FrameTensors
 from inrslam.slam.keyframes import KeyframeStore
-from inrslam.slam.registration import filtered_depth
+from inrslam.slam.registration import depth_noise, filtered_depth
 from inrslam.slam.system import SlamRunConfig, SlamSystem
 
 
@@ -58,7 +58,7 @@ class EheSystem(SlamSystem):
 
     # -- the loop ----------------------------------------------------------------------------------------------
     def _process(self, i: int, frame: Frame) -> None:
-        mapped = self.mapped_frame(frame)
+        mapped, noise = self.mapped_frame(frame)
         ft = FrameTensors(mapped, self.device)
         s = self.state
         s.timestamps[i] = frame.timestamp
@@ -71,15 +71,19 @@ class EheSystem(SlamSystem):
         else:
             self._set_pose(i, c2w)
             self._log({"type": "pose", "frame": i, "source": self.given.source["source"]})
-        self._map_ehe(i, ft, c2w, depth_filtered=mapped is not frame)
+        depth = {"depth_filtered": mapped is not frame,
+                 "depth_noise": round(noise, 6) if noise is not None and np.isfinite(noise) else None}
+        self._map_ehe(i, ft, c2w, depth)
 
-    def mapped_frame(self, frame: Frame) -> Frame:
-        """The frame the map learns: with `slam.map_filtered_depth` and `slam.gicp.depth_filter` > 0, its depth
-        after the bilateral filter where the depth is noisy enough (`filtered_depth`'s gate); else `frame` itself."""
+    def mapped_frame(self, frame: Frame) -> tuple[Frame, float | None]:
+        """The frame the map learns, and the depth noise at 1 m (metres; None when not filtering) it was judged by:
+        with `slam.map_filtered_depth` and `slam.gicp.depth_filter` > 0, the frame with its depth after the bilateral
+        filter where that noise reaches `slam.gicp.filter_min_noise` (`filtered_depth`); else `frame` itself."""
         g = self.cfg.slam.gicp
         if not (self.cfg.slam.map_filtered_depth and g.depth_filter > 0):
-            return frame
-        return self._map_frame(frame, filtered_depth(frame.depth, g))
+            return frame, None
+        noise = depth_noise(frame.depth, g)
+        return self._map_frame(frame, filtered_depth(frame.depth, g, noise=noise)), noise
 
     def _frame_points(self, ft: FrameTensors, c2w: torch.Tensor) -> torch.Tensor:
         """World points (N, 3) of the frame's valid depth (every `point_stride`-th row / column)."""
@@ -93,7 +97,9 @@ class EheSystem(SlamSystem):
         o, d = world_rays(c2w, dirs * depth[:, None])
         return o + d
 
-    def _map_ehe(self, i: int, ft: FrameTensors, c2w: torch.Tensor, depth_filtered: bool = False) -> None:
+    def _map_ehe(self, i: int, ft: FrameTensors, c2w: torch.Tensor, depth: dict | None = None) -> None:
+        """Allocate, initialise priors and optimise over the keyframe window for frame i; `depth` (which depth
+        was mapped: `depth_filtered`, `depth_noise`) goes into its map record."""
         c, s = self.cfg.ehe, self.state
         t0 = time.perf_counter()
         vg = self.field.voxels
@@ -112,7 +118,7 @@ class EheSystem(SlamSystem):
             s.init_ms = ms
         else:
             s.map_ms.append(ms)
-        self._record(i, ms, res, window, alloc.new.numel(), accepted, depth_filtered)
+        self._record(i, ms, res, window, alloc.new.numel(), accepted, depth or {})
         last = len(s.kf_voxels) - 1
         if i == 0 or needs_keyframe(voxel_overlap(observed, s.kf_voxels[last]), i - s.store.frame_ids[-1], c):
             self._add_keyframe(i, ft)
@@ -142,7 +148,7 @@ class EheSystem(SlamSystem):
         return batch
 
     def _record(self, i: int, ms: float, res: MapResult, window: list[int], new: int, accepted: int,
-                depth_filtered: bool) -> None:
+                depth: dict) -> None:
         s = self.state
         s.proc_psnr += [p for p in res.psnr if np.isfinite(p)]
         s.proc_depth_l1 += [d for d in res.depth_l1 if np.isfinite(d)]
@@ -153,8 +159,7 @@ class EheSystem(SlamSystem):
                    "loss": res.losses[-1] if res.losses else None,
                    "psnr": float(np.nanmean(res.psnr)) if res.psnr else None,
                    "depth_l1": float(np.nanmean(res.depth_l1)) if res.depth_l1 else None,
-                   "voxels": vg.n_allocated, "new_voxels": new, "priors_accepted": accepted,
-                   "depth_filtered": depth_filtered})
+                   "voxels": vg.n_allocated, "new_voxels": new, "priors_accepted": accepted, **depth})
 
     def _add_keyframe(self, i: int, ft: FrameTensors) -> None:
         n = max(1, int(round(self.cfg.ehe.kf_ray_fraction * ft.intr.height * ft.intr.width)))
