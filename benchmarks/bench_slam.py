@@ -4,6 +4,7 @@ reference kernels, in one run (issue #5 speed table). Prints a table; never asse
     python benchmarks/bench_slam.py                       # all F, fused and reference, 15 frames of builtin:room
     python benchmarks/bench_slam.py --encodings dense triplane --frames 20 --kernels numba
     python benchmarks/bench_slam.py --encodings dense hash --kernels numba --decoders torch numba   # fused decoders
+    python benchmarks/bench_slam.py --encodings dense hash --kernels numba --decoders numba --losses torch numba
 
 Per-frame time = (all tracking time + all mapping time) / tracked frames, i.e. the steady-state cost of a frame
 (tracking every frame, mapping every 5th). The 500-iteration initialisation is excluded (reported apart).
@@ -22,14 +23,14 @@ ENCODINGS = ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+t
 
 
 def run_one(encoding: str, kernel: str, frames: int, render: str, data: str, init_iters: int,
-            overrides: Sequence[str] = (), decoder: str = "torch") -> dict:
+            overrides: Sequence[str] = (), decoder: str = "torch", loss: str = "torch") -> dict:
     from inrslam.config import load_config
     from inrslam.datasets import open_dataset
     from inrslam.slam.system import SlamSystem
 
     cfg = load_config(preset="paper", overrides=[
         f"data.path={data}", f"data.max_frames={frames}", f"field.encoding={encoding}", f"field.kernel={kernel}",
-        f"field.decoder_kernel={decoder}",
+        f"field.decoder_kernel={decoder}", f"loss.kernel={loss}",
         f"render.name={render}", f"slam.init_iters={init_iters}", "slam.checkpoint_every=0", "mesh.enabled=false",
         "eval.enabled=false", "output.tensorboard=false", *overrides])
     system = SlamSystem(cfg, open_dataset(cfg.data))
@@ -38,7 +39,7 @@ def run_one(encoding: str, kernel: str, frames: int, render: str, data: str, ini
     wall = time.perf_counter() - t0
     tracked = len(system.state.track_ms)
     per_frame = (sum(system.state.track_ms) + sum(system.state.map_ms)) / max(tracked, 1)
-    return {"encoding": encoding, "kernel": kernel, "decoder": decoder,
+    return {"encoding": encoding, "kernel": kernel, "decoder": decoder, "loss": loss,
             "track_ms": sum(system.state.track_ms) / max(tracked, 1),
             "map_ms": sum(system.state.map_ms) / max(len(system.state.map_ms), 1), "per_frame_s": per_frame / 1e3,
             "init_ms_per_iter": system.state.init_ms / max(init_iters, 1), "wall_s": wall}
@@ -56,6 +57,8 @@ def main() -> None:
     ap.add_argument("--json", help="also write the rows to this JSON file")
     ap.add_argument("--decoders", nargs="+", default=["torch"], help="field.decoder_kernel values (grid decoders: "
                     "torch autograd or the fused numba kernel)")
+    ap.add_argument("--losses", nargs="+", default=["torch"], help="loss.kernel values (compositing + losses: "
+                    "torch autograd or the fused numba kernel)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more config overrides for every run "
                     "(e.g. slam.track_iters=10)")
     args = ap.parse_args()
@@ -63,19 +66,31 @@ def main() -> None:
 
     print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
           f"{torch.__version__}, threads {torch.get_num_threads()}; data {args.data}, G={args.render}, paper preset")
-    print(f"{'F':<10} {'lookups':<7} {'decoder':<7} {'track ms/frame':>15} {'map ms/call':>12} {'s/frame':>8} "
-          f"{'init ms/it':>11}")
+    print(f"{'F':<10} {'lookups':<7} {'decoder':<7} {'losses':<7} {'track ms/frame':>15} {'map ms/call':>12} "
+          f"{'s/frame':>8} {'init ms/it':>11}")
     rows = []
     for enc in args.encodings:
         for kernel in args.kernels:
             for decoder in args.decoders:
-                frames = args.frames if kernel != "torch" else args.ref_frames
-                r = run_one(enc, kernel, frames, args.render, args.data, args.init_iters, args.set, decoder)
-                rows.append(r)
-                print(f"{enc:<10} {kernel:<7} {decoder:<7} {r['track_ms']:>15.0f} {r['map_ms']:>12.0f} "
-                      f"{r['per_frame_s']:>8.2f} {r['init_ms_per_iter']:>11.0f}", flush=True)
+                for loss in args.losses:
+                    frames = args.frames if kernel != "torch" else args.ref_frames
+                    r = run_one(enc, kernel, frames, args.render, args.data, args.init_iters, args.set, decoder, loss)
+                    rows.append(r)
+                    print(f"{enc:<10} {kernel:<7} {decoder:<7} {loss:<7} {r['track_ms']:>15.0f} {r['map_ms']:>12.0f} "
+                          f"{r['per_frame_s']:>8.2f} {r['init_ms_per_iter']:>11.0f}", flush=True)
         mine = [r for r in rows if r["encoding"] == enc]
-        pick = {(r["kernel"], r["decoder"]): r for r in mine}
+        if len(args.losses) > 1:
+            for kernel in args.kernels:
+                for decoder in args.decoders:
+                    by = {r["loss"]: r for r in mine if (r["kernel"], r["decoder"]) == (kernel, decoder)}
+                    if "torch" in by and "numba" in by:
+                        a, b = by["torch"], by["numba"]
+                        print(f"{enc:<10} ratio   torch/fused losses ({kernel} lookups, {decoder} decoders): per "
+                              f"frame {a['per_frame_s'] / b['per_frame_s']:.2f}x, tracking "
+                              f"{a['track_ms'] / b['track_ms']:.2f}x, mapping {a['map_ms'] / b['map_ms']:.2f}x",
+                              flush=True)
+        l0 = args.losses[0]
+        pick = {(r["kernel"], r["decoder"]): r for r in mine if r["loss"] == l0}
         d0 = args.decoders[0]
         if ("numba", d0) in pick and ("torch", d0) in pick:
             print(f"{enc:<10} ratio   reference/fused lookups, per-frame time: "

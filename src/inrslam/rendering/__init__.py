@@ -18,7 +18,7 @@ from inrslam.rendering.config import (
     SamplingVariant,
     VolSdfConfig,
 )
-from inrslam.rendering.losses import compute_losses, depth_l1, psnr_from_mse
+from inrslam.rendering.losses import compute_losses, depth_l1, psnr_from_mse, render_losses
 from inrslam.rendering.render import RenderOutput, render_rays
 from inrslam.rendering.renderers import RENDERERS, SdfToWeights, build_renderer, renderer_param_groups
 from inrslam.rendering.sampling import aabb_exit, sample_depths, sample_pixels
@@ -48,6 +48,7 @@ __all__ = [
     "surface_depth",
     "surface_intervals",
     "psnr_from_mse",
+    "render_losses",
     "render_rays",
     "renderer_param_groups",
     "sample_depths",

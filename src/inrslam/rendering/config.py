@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import Enum
 
+from inrslam.fields.config import KernelChoice
+
 
 class NormalsMethod(str, Enum):
     """How SDF gradients are obtained for renderers that need them (NeuS)."""
@@ -123,3 +125,4 @@ class LossConfig:
     silhouette_radius: int = 2  # pixels (Chebyshev) searched for the farther neighbour
     free_space_target: float = 1.0  # free-space SDF target, T-units ('loss variant' of docs/spec.md §7.8: 0.1)
     reduction: LossReduction = LossReduction.PER_RAY  # averaging of the SDF terms
+    kernel: KernelChoice = KernelChoice.TORCH  # compositing + losses: torch (autograd) | numba (fused, CPU) | auto

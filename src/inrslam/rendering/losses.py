@@ -22,12 +22,16 @@ The free-space / centre / tail terms read the field's scalar as an SDF. For rend
 from __future__ import annotations
 
 import math
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
 
+from inrslam.fields.config import KernelChoice
+from inrslam.rendering.compositing import composite
 from inrslam.rendering.config import LossConfig, LossReduction
-from inrslam.rendering.render import RenderOutput
+from inrslam.rendering.fused_losses import composite_losses, fusable
+from inrslam.rendering.render import RenderOutput, render_samples
 
 
 def safe_mean(values: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -118,6 +122,39 @@ def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, 
         terms.update(free_space=zero, center=zero.clone(), tail=zero.clone())
     terms["total"] = total
     return terms
+
+
+def render_losses(field: Callable[[Tensor], Any], renderer, origins: Tensor, dirs: Tensor, z: Tensor,
+                  target_rgb: Tensor, target_depth: Tensor, cfg: LossConfig, truncation: float,
+                  behind: Tensor | None = None) -> tuple[dict[str, Tensor], RenderOutput]:
+    """Render rays (`render_rays`) and their loss terms (`compute_losses`, SDF terms when `renderer.sdf_based`).
+
+    `cfg.kernel`: torch composites and takes the losses in autograd (the reference); numba (CPU float32 / float64)
+    runs both as one fused kernel each way (`fused_losses`: same terms, float rounding apart); auto picks numba
+    where it can. The fused path's RenderOutput holds its composites without gradient (callers only log them).
+    Arguments and returns as `render_rays` and `compute_losses`.
+    """
+    sdf_terms = bool(getattr(renderer, "sdf_based", True))
+    sdf, rgb, weights, normals = render_samples(field, renderer, origins, dirs, z, truncation)
+    args = (weights, rgb, z, sdf, target_rgb, target_depth)
+    kernel = KernelChoice(cfg.kernel)
+    if kernel is KernelChoice.NUMBA and not fusable(*args):
+        raise ValueError("loss.kernel 'numba' needs CPU float32/float64 tensors of one dtype; use 'auto' or 'torch'")
+    if kernel is KernelChoice.TORCH or not fusable(*args):
+        out = RenderOutput(*composite(weights, rgb, z), weights, sdf, z, normals)
+        return compute_losses(out, target_rgb, target_depth, cfg, truncation, sdf_terms, behind), out
+    terms, comp = composite_losses(*args, truncation, cfg.center_band, cfg.free_space_target,
+                                   LossReduction(cfg.reduction) is LossReduction.PER_RAY, sdf_terms,
+                                   cfg.behind if behind is None else behind)
+    total = cfg.color * terms["color"] + cfg.depth * terms["depth"]
+    if sdf_terms:
+        total = (total + cfg.free_space * terms["free_space"] + cfg.center * terms["center"]
+                 + cfg.tail * terms["tail"])
+    else:  # as `compute_losses`: zeros without gradient, left out of the total
+        terms.update({k: terms[k].detach() for k in ("free_space", "center", "tail")})
+    terms["total"] = total
+    out = RenderOutput(comp[:, :3], comp[:, 3], comp[:, 4], comp[:, 5], weights, sdf, z, normals)
+    return terms, out
 
 
 def depth_l1(depth: Tensor, target_depth: Tensor) -> Tensor:

@@ -122,6 +122,15 @@ def render_rays(field: Callable[[Tensor], Any], renderer, origins: Tensor, dirs:
     Returns:
         RenderOutput.
     """
+    sdf, rgb, weights, normals = render_samples(field, renderer, origins, dirs, z, truncation)
+    out_rgb, depth, opacity, depth_var = composite(weights, rgb, z)
+    return RenderOutput(out_rgb, depth, opacity, depth_var, weights, sdf, z, normals)
+
+
+def render_samples(field: Callable[[Tensor], Any], renderer, origins: Tensor, dirs: Tensor, z: Tensor,
+                   truncation: float) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """`render_rays` before compositing: sdf (R, S) T-units, colours (R, S, 3), G's weights (R, S) and the normals
+    (R, S, 3) or None."""
     R, S = z.shape
     points = ray_points(origins, dirs, z).reshape(-1, 3)
     normals = None
@@ -140,6 +149,4 @@ def render_rays(field: Callable[[Tensor], Any], renderer, origins: Tensor, dirs:
         sdf, logits = _query(field, points)
     sdf = sdf.reshape(R, S)
     rgb = torch.sigmoid(logits.reshape(R, S, 3))
-    weights = renderer(sdf, z, dirs, normals, truncation)
-    out_rgb, depth, opacity, depth_var = composite(weights, rgb, z)
-    return RenderOutput(out_rgb, depth, opacity, depth_var, weights, sdf, z, normals)
+    return sdf, rgb, renderer(sdf, z, dirs, normals, truncation), normals

@@ -20,9 +20,9 @@ from inrslam.rendering import (
     SamplingConfig,
     SdfToWeights,
     build_renderer,
-    compute_losses,
     first_crossing,
     refine_crossing,
+    render_losses,
     render_rays,
     renderer_param_groups,
     sample_depths,
@@ -96,10 +96,8 @@ class SceneModel(nn.Module):
         with torch.no_grad():
             z = sample_depths(depth, dirs.detach(), origins.detach(), self.bounds, self.cfg.sampling,
                               self.truncation, generator)
-        out = render_rays(self.field, self.renderer, origins, dirs, z, self.truncation)
-        losses = compute_losses(out, rgb, depth, self.cfg.loss, self.truncation,
-                                sdf_terms=getattr(self.renderer, "sdf_based", True), behind=behind)
-        return losses, out
+        return render_losses(self.field, self.renderer, origins, dirs, z, rgb, depth, self.cfg.loss, self.truncation,
+                             behind)
 
     # -- held-out rendering (no measured depth) -----------------------------------------------------------
     @torch.no_grad()
