@@ -71,6 +71,7 @@ def sample_depths(
     cfg: SamplingConfig,
     truncation: float,
     generator: torch.Generator | None = None,
+    kernel: str = "auto",
 ) -> Tensor:
     """Sample z-depths along rays, guided by the measured depth (docs/spec.md §5.1; supplementary §1).
 
@@ -89,6 +90,8 @@ def sample_depths(
         bounds: (3, 2) scene box, metres.
         cfg: sampling options; truncation: T, metres.
         generator: RNG for the jitter, on any device (a CPU generator with CUDA rays is fine).
+        kernel: "torch" (the reference), "numba" (one fused pass, CPU float32 / float64, bit-identical to it:
+            `sampling_kernel`) or "auto" (numba where it can).
     Returns:
         (R, S) sorted z-depths, metres, dtype of `depth`.
     """
@@ -108,6 +111,13 @@ def sample_depths(
 
     lin = torch.linspace(0.0, 1.0, S, device=device, dtype=dtype)
     t_far = (aabb_exit(origins.to(dtype), dirs.to(dtype), bounds_t) + 0.01).clamp_min(near + 0.01)
+    fusable = device.type == "cpu" and dtype in (torch.float32, torch.float64)
+    if kernel == "numba" and not fusable:
+        raise ValueError("sampling kernel 'numba' needs CPU float32/float64 depth; use 'auto' or 'torch'")
+    if kernel not in ("auto", "torch", "numba"):
+        raise ValueError(f"unknown sampling kernel {kernel!r} (choices: auto, torch, numba)")
+    if kernel != "torch" and fusable:
+        return _fused_samples(depth, t_far, lin, n_free, n_surf, S, near, cfg, truncation, generator)
     z = near + (t_far[:, None] - near) * lin  # rays without depth
     if any_depth:
         d = depth[:, None]
@@ -121,6 +131,24 @@ def sample_depths(
     if cfg.jitter:
         z = stratified_jitter(z, generator)
     return z
+
+
+def _fused_samples(depth: Tensor, t_far: Tensor, lin: Tensor, n_free: int, n_surf: int, S: int, near: float,
+                   cfg: SamplingConfig, truncation: float, generator: torch.Generator | None) -> Tensor:
+    """`sample_depths`' samples by `sampling_kernel.depth_guided_samples` (same values, same random draws)."""
+    from inrslam.rendering.sampling_kernel import depth_guided_samples
+
+    dtype = depth.dtype
+    lin_free = torch.linspace(0, 1, n_free, dtype=dtype)
+    offs = torch.linspace(-1.0, 1.0, n_surf, dtype=dtype) * (cfg.band * truncation)
+    gen_device = generator.device if generator is not None else "cpu"
+    u = (torch.rand((depth.shape[0], S), generator=generator, device=gen_device, dtype=dtype).cpu() if cfg.jitter
+         else depth.new_zeros((0, S)))  # the reference's draw: same shape, dtype and generator
+    out = np.empty((depth.shape[0], S), dtype=depth.numpy().dtype)
+    t = depth.numpy().dtype.type
+    depth_guided_samples(depth.contiguous().numpy(), t_far.contiguous().numpy(), lin_free.numpy(), offs.numpy(),
+                         lin.numpy(), t(near), t(cfg.far_factor), t(0.5), t(0.0), u.numpy(), bool(cfg.jitter), out)
+    return torch.from_numpy(out)
 
 
 def distinct_indices(total: int, n: int, generator: torch.Generator | None = None) -> Tensor:
