@@ -1,0 +1,96 @@
+"""One tracking and one mapping iteration (loss forward + backward, no optimiser step) at `paper` settings, with the
+CPU kernels added one at a time, interleaved in one process on the same map and rays (median of --reps; steadier
+on a noisy machine than whole runs one after the other). Prints ms per iteration and the ratio to the first row;
+never asserted in tests.
+
+    python benchmarks/bench_iteration.py                              # dense, builtin:room
+    python benchmarks/bench_iteration.py --encoding hash --reps 40
+
+Rows: `paper` as it runs (fused lookups, numba sampler: bit-identical to the torch one), then the torch sampler
+(the reference, for its share), then `field.decoder_kernel=numba`, then also `loss.kernel=numba`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import os
+import platform
+import statistics
+import time
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--encoding", default="dense")
+    ap.add_argument("--data", default="builtin:room")
+    ap.add_argument("--frames", type=int, default=6, help="frames run first to build the map")
+    ap.add_argument("--reps", type=int, default=30)
+    args = ap.parse_args()
+    import torch
+
+    import inrslam.slam.model as model_mod
+    from inrslam.config import load_config
+    from inrslam.datasets import open_dataset
+    from inrslam.rendering.sampling import sample_depths
+    from inrslam.slam.frame_tensors import FrameTensors
+    from inrslam.slam.system import SlamSystem
+    from inrslam.slam.tracking import frozen
+
+    cfg = load_config(preset="paper", overrides=[
+        f"data.path={args.data}", f"data.max_frames={args.frames + 1}", f"field.encoding={args.encoding}",
+        "slam.init_iters=100", "slam.checkpoint_every=0", "mesh.enabled=false", "eval.enabled=false",
+        "output.tensorboard=false"])
+    system = SlamSystem(cfg, open_dataset(cfg.data))
+    for i in range(args.frames):
+        system.process(i)
+    model = system.model
+    ft = FrameTensors(system.dataset[args.frames], system.device)
+    g = torch.Generator().manual_seed(0)
+    c2w = system.est[args.frames - 1].clone()
+    track_rays = ft.sample(cfg.slam.track_pixels, g, cfg.slam.track_edge)
+    map_rays = ft.sample(cfg.slam.map_pixels, g)
+
+    def variant(sampler: str, decoder: str, loss: str) -> None:
+        model_mod.sample_depths = functools.partial(sample_depths, kernel=sampler)  # type: ignore[assignment]
+        model.field.decoder_backend = decoder
+        model.cfg.loss.kernel = loss
+
+    variants = [("paper (numba sampler)", ("auto", "torch", "torch")), ("torch sampler", ("torch", "torch", "torch")),
+                ("+ decoder_kernel=numba", ("auto", "numba", "torch")),
+                ("+ loss.kernel=numba", ("auto", "numba", "numba"))]
+
+    def track_iter() -> None:
+        pose = c2w.clone().requires_grad_()
+        with frozen(model):
+            losses, _ = model.loss(pose, *track_rays, g)
+            losses["total"].backward()
+
+    def map_iter() -> None:
+        losses, _ = model.loss(c2w, *map_rays, g)
+        losses["total"].backward()
+        model.zero_grad(set_to_none=True)
+
+    print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
+          f", threads {torch.get_num_threads()}; {args.data}, F={args.encoding}, paper settings, median of {args.reps}")
+    for name, step in (("tracking", track_iter), (f"mapping ({cfg.slam.map_pixels} rays)", map_iter)):
+        times: dict[str, list[float]] = {v[0]: [] for v in variants}
+        for _, v in variants:  # warm-up: numba compiles or loads its caches
+            variant(*v)
+            step()
+        for _ in range(args.reps):
+            for label, v in variants:
+                variant(*v)
+                t0 = time.perf_counter()
+                step()
+                times[label].append((time.perf_counter() - t0) * 1e3)
+        base = statistics.median(times[variants[0][0]])
+        print(f"{name} iteration:")
+        for label, _ in variants:
+            m = statistics.median(times[label])
+            print(f"  {label:<24} {m:7.2f} ms  {base / m:5.2f}x", flush=True)
+    variant("auto", "torch", "torch")
+
+
+if __name__ == "__main__":
+    main()
