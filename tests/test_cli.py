@@ -137,3 +137,22 @@ def test_config_shows_each_keys_help_and_still_loads(capsys):
     assert all("  # " in line for line in keys)  # every key has its help
     assert main(["config", "--plain"]) == 0
     assert "#" not in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("key", ["field.kernel", "field.decoder_kernel", "loss.kernel"])
+def test_a_cpu_only_kernel_on_a_gpu_device_is_a_one_line_config_error(monkeypatch, key):
+    import re
+
+    import torch
+
+    import inrslam.slam.system as system_mod
+    from inrslam.cli import _check_device
+    from inrslam.config import load_config
+    from inrslam.errors import ConfigError
+
+    monkeypatch.setattr(system_mod, "resolve_device", lambda name: torch.device("cuda"))  # as on a GPU machine
+    with pytest.raises(ConfigError, match=rf"config key '{re.escape(key)}': 'numba' runs on CPU tensors only.*cuda"):
+        _check_device(load_config(preset="quick", overrides=[f"{key}=numba"]))
+    _check_device(load_config(preset="quick", overrides=[f"{key}=auto"]))  # auto picks torch there: fine
+    monkeypatch.setattr(system_mod, "resolve_device", lambda name: torch.device("cpu"))
+    _check_device(load_config(preset="quick", overrides=[f"{key}=numba"]))  # and numba on the CPU

@@ -184,13 +184,20 @@ def _check_out_dir(path: str | os.PathLike, flag: str = "--out") -> None:
 
 
 def _check_device(cfg) -> None:
-    """ConfigError for a device name other than auto, cpu, cuda, cuda:N, or CUDA asked for but not available."""
+    """ConfigError for a device name other than auto, cpu, cuda, cuda:N, CUDA asked for but not available, or a
+    CPU-only kernel (`numba`) asked for on another device."""
     from inrslam.errors import ConfigError
     from inrslam.slam.system import resolve_device
 
     if not DEVICE_RE.fullmatch(str(cfg.device)):
         raise ConfigError(f"config key 'device' (--device): expected auto, cpu, cuda or cuda:N, got {cfg.device!r}")
-    resolve_device(cfg.device)
+    device = resolve_device(cfg.device)
+    if device.type != "cpu":
+        for key, value in (("field.kernel", cfg.field.kernel), ("field.decoder_kernel", cfg.field.decoder_kernel),
+                           ("loss.kernel", cfg.loss.kernel)):
+            if str(getattr(value, "value", value)) == "numba":
+                raise ConfigError(f"config key '{key}': 'numba' runs on CPU tensors only and the run's device is "
+                                  f"{device}; use auto (numba on CPU, torch elsewhere) or torch")
 
 
 def _check_resumable_data(run_dir: str) -> None:
