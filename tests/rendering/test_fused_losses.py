@@ -117,12 +117,14 @@ def test_rays_without_depth_or_sdf_terms_give_zeros_not_nan():
     w.requires_grad_()
     sdf.requires_grad_()
     got, _ = fused(w, c, z, sdf, C, D, LossConfig())
-    assert all(float(got[k]) == 0.0 for k in ("depth", "free_space", "center", "tail")) and float(got["color"]) > 0
+    values = {k: float(v.detach()) for k, v in got.items()}
+    assert all(values[k] == 0.0 for k in ("depth", "free_space", "center", "tail")) and values["color"] > 0
     gw, gs = torch.autograd.grad(got["color"] + got["tail"], (w, sdf))
     assert torch.isfinite(gw).all() and float(gs.abs().max()) == 0.0
     _, _, _, sdf2, _, D2 = random_rays(4, R=8)
     off, _ = fused(w, c, z, sdf2, C, D2, LossConfig(), sdf_terms=False)
-    assert all(float(off[k]) == 0.0 for k in ("free_space", "center", "tail")) and float(off["depth"]) > 0
+    values = {k: float(v.detach()) for k, v in off.items()}
+    assert all(values[k] == 0.0 for k in ("free_space", "center", "tail")) and values["depth"] > 0
 
 
 def test_results_do_not_depend_on_the_thread_count():
@@ -147,7 +149,22 @@ class _Field:
         return Out()
 
 
-@pytest.mark.parametrize("render", ["density", "direct", "nerf"])
+def test_inputs_the_kernel_does_not_differentiate_are_refused_and_composites_are_private():
+    w, c, z, sdf, C, D = random_rays(7, R=10)
+    with pytest.raises(ValueError, match="z and the targets must not require grad"):
+        fused(w, c, z.clone().requires_grad_(), sdf, C, D, LossConfig())
+    with pytest.raises(ValueError, match="0 < center_band <= 1"):
+        composite_losses(w, c, z, sdf, C, D, T, 1.5, 1.0, True, True)
+    w.requires_grad_()
+    ref, _ = reference(w, c, z, sdf, C, D, LossConfig())
+    got, comp = fused(w, c, z, sdf, C, D, LossConfig())
+    comp.mul_(0)  # a caller editing the composites does not change the gradient
+    (g,) = torch.autograd.grad(got["color"] + got["depth"], (w,))
+    (g_ref,) = torch.autograd.grad(ref["color"] + ref["depth"], (w,))
+    assert torch.allclose(g, g_ref, rtol=1e-10)
+
+
+@pytest.mark.parametrize("render", ["density", "direct", "nerf", "neus", "volsdf"])
 def test_render_losses_by_kernel(render):
     from inrslam.rendering import RenderConfig, build_renderer
 
@@ -172,6 +189,10 @@ def test_render_losses_by_kernel(render):
     assert torch.allclose(out.depth, out_ref.depth) and torch.allclose(out.rgb, out_ref.rgb)
     assert torch.allclose(g_got, g_ref, rtol=1e-9, atol=1e-14) and float(g_ref.abs().max()) > 0
     assert torch.equal(res["auto"][2], g_got)  # auto picks the fused kernel for CPU tensors
+    zg = z.clone().requires_grad_()  # a differentiable z: the fused choice runs the reference
+    losses, _ = render_losses(_Field(), renderer, origins, dirs, zg, C, D, LossConfig(kernel="numba"), T)
+    (gz,) = torch.autograd.grad(losses["total"], (zg,))
+    assert float(gz.abs().max()) > 0
     if render == "nerf":  # not SDF-based: the SDF terms are zeros without gradient, as the reference's
         assert not got["tail"].requires_grad and float(got["tail"]) == 0.0
 

@@ -20,6 +20,7 @@ def rays(seed: int, dtype, R: int = 131, no_depth: bool = False):
     depth = torch.rand(R, generator=g, dtype=dtype) * 4
     depth[::5] = 0  # rays without depth sample uniformly to the box exit
     depth[3] = 0.05  # free-space span below `near`: clamped
+    depth[4] = float("nan")  # invalid depth: sampled as a ray without depth by both
     if no_depth:
         depth[:] = 0
     dirs = torch.cat([torch.rand(R, 2, generator=g, dtype=dtype) - 0.5, torch.ones(R, 1, dtype=dtype)], dim=1)

@@ -157,7 +157,8 @@ class CompositeLossFn(torch.autograd.Function):
         n_valid = int((Dn > 0).sum())
         terms, scale = _scales(parts, n_valid, per_ray)
         ctx.save_for_backward(*arrs)
-        ctx.consts, ctx.sdf_terms, ctx.comp, ctx.scale, ctx.n_valid = consts, sdf_terms, comp, scale, n_valid
+        # the backward keeps its own copy: the composites returned may be edited by the caller
+        ctx.consts, ctx.sdf_terms, ctx.comp, ctx.scale, ctx.n_valid = consts, sdf_terms, comp.copy(), scale, n_valid
         comp_t = torch.from_numpy(comp)
         ctx.mark_non_differentiable(comp_t)
         return torch.from_numpy(terms.astype(wn.dtype)), comp_t
@@ -204,10 +205,18 @@ def composite_losses(weights: Tensor, rgb: Tensor, z: Tensor, sdf: Tensor, targe
     Returns:
         ({'color', 'depth', 'free_space', 'center', 'tail'}: 0-d tensors, differentiable in weights, rgb, sdf),
         composites (R, 6): Ĉ (3), D̂, O, Var, without gradient.
+    Raises:
+        ValueError: z or the targets require a gradient (the kernel gives none: use the reference), or
+            center_band > 1 (the kernel's centre band lies inside the ±T band, as `loss.center_band`'s range).
     """
+    if z.requires_grad or target_rgb.requires_grad or target_depth.requires_grad:
+        raise ValueError("composite_losses differentiates weights, rgb and sdf only; z and the targets must not "
+                         "require grad (use composite + compute_losses)")
+    if not 0 < center_band <= 1:
+        raise ValueError(f"composite_losses needs 0 < center_band <= 1, got {center_band}")
     R = weights.shape[0]
     if isinstance(behind, Tensor):
-        b = behind.to(weights.dtype) * truncation
+        b = (behind * truncation).to(weights.dtype)
     else:  # `sdf_masks`: a scalar band end >= 1 never restricts (its masks stop at T already)
         b = weights.new_full((R,), behind * truncation if behind < 1.0 else np.inf)
     terms, comp = CompositeLossFn.apply(weights, rgb, z, sdf, target_rgb.to(weights.dtype),

@@ -131,7 +131,8 @@ def render_losses(field: Callable[[Tensor], Any], renderer, origins: Tensor, dir
 
     `cfg.kernel`: torch composites and takes the losses in autograd (the reference); numba (CPU float32 / float64)
     runs both as one fused kernel each way (`fused_losses`: same terms, float rounding apart); auto picks numba
-    where it can. The fused path's RenderOutput holds its composites without gradient (callers only log them).
+    where it can. Either fused choice runs the reference when z or the targets require a gradient. The fused
+    path's RenderOutput holds its composites without gradient (callers only log them).
     Arguments and returns as `render_rays` and `compute_losses`.
     """
     sdf_terms = bool(getattr(renderer, "sdf_based", True))
@@ -140,7 +141,8 @@ def render_losses(field: Callable[[Tensor], Any], renderer, origins: Tensor, dir
     kernel = KernelChoice(cfg.kernel)
     if kernel is KernelChoice.NUMBA and not fusable(*args):
         raise ValueError("loss.kernel 'numba' needs CPU float32/float64 tensors of one dtype; use 'auto' or 'torch'")
-    if kernel is KernelChoice.TORCH or not fusable(*args):
+    if kernel is KernelChoice.TORCH or not fusable(*args) or z.requires_grad or target_rgb.requires_grad \
+            or target_depth.requires_grad:  # the kernel differentiates weights, colours and SDF only
         out = RenderOutput(*composite(weights, rgb, z), weights, sdf, z, normals)
         return compute_losses(out, target_rgb, target_depth, cfg, truncation, sdf_terms, behind), out
     terms, comp = composite_losses(*args, truncation, cfg.center_band, cfg.free_space_target,

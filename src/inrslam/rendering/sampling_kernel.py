@@ -1,5 +1,6 @@
 """Depth-guided ray samples in one numba pass (CPU): `sampling.sample_depths` without its ~15 small tensor operations
-per call (1.9 ms for a tracking batch of 1024 rays x 60 samples, most of it per-operation overhead).
+per call (1.5 ms for a tracking batch of 1024 rays x 60 samples, most of it per-operation overhead; 0.8 ms here:
+`benchmarks/bench_losses.py`).
 
 Bit-identical to the torch path it replaces (the tests compare with `torch.equal`): every float operation is the
 same one in the same dtype and order (torch rounds a Python scalar operand to the tensor's dtype first, so the
