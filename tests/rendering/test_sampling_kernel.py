@@ -21,6 +21,7 @@ def rays(seed: int, dtype, R: int = 131, no_depth: bool = False):
     depth[::5] = 0  # rays without depth sample uniformly to the box exit
     depth[3] = 0.05  # free-space span below `near`: clamped
     depth[4] = float("nan")  # invalid depth: sampled as a ray without depth by both
+    depth[6] = float("inf")  # infinite depth: inf and NaN samples, in the same places
     if no_depth:
         depth[:] = 0
     dirs = torch.cat([torch.rand(R, 2, generator=g, dtype=dtype) - 0.5, torch.ones(R, 1, dtype=dtype)], dim=1)
@@ -39,8 +40,9 @@ def test_fused_samples_equal_the_reference_bit_for_bit(dtype, counts, jitter, va
         ref = sample_depths(depth, dirs, origins, bounds, cfg, 0.1, torch.Generator().manual_seed(seed), "torch")
         got = sample_depths(depth, dirs, origins, bounds, cfg, 0.1, torch.Generator().manual_seed(seed), "numba")
         assert got.dtype == ref.dtype and got.shape == ref.shape
-        assert torch.equal(got, ref)
-        assert bool((got[:, 1:] >= got[:, :-1]).all())  # sorted, also after the jitter
+        torch.testing.assert_close(got, ref, rtol=0, atol=0, equal_nan=True)  # bit for bit, NaN where torch has one
+        finite = torch.isfinite(got).all(dim=1)
+        assert bool((got[finite, 1:] >= got[finite, :-1]).all())  # sorted, also after the jitter
 
 
 def test_the_random_stream_continues_as_with_the_reference():
@@ -62,7 +64,7 @@ def test_fused_samples_do_not_depend_on_the_thread_count():
         with thread_scope(n):
             outs.append(sample_depths(depth, dirs, origins, bounds, SamplingConfig(), 0.1,
                                       torch.Generator().manual_seed(0), "numba"))
-    assert torch.equal(outs[0], outs[1])
+    torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=0, equal_nan=True)
 
 
 @pytest.mark.parametrize("device", ["cpu", "cuda"])
@@ -73,7 +75,7 @@ def test_kernel_choice_and_devices(device):
     cfg = SamplingConfig()
     ref = sample_depths(depth, dirs, origins, bounds, cfg, 0.1, torch.Generator().manual_seed(0), "torch")
     auto = sample_depths(depth, dirs, origins, bounds, cfg, 0.1, torch.Generator().manual_seed(0))  # "auto"
-    assert torch.equal(auto, ref)
+    torch.testing.assert_close(auto, ref, rtol=0, atol=0, equal_nan=True)
     if device == "cuda":
         with pytest.raises(ValueError, match="sampling kernel 'numba' needs CPU"):
             sample_depths(depth, dirs, origins, bounds, cfg, 0.1, None, "numba")
