@@ -41,6 +41,7 @@ def bench_batch(R: int, S: int, reps: int) -> None:
     from inrslam.rendering import RenderOutput, composite, compute_losses
     from inrslam.rendering.config import LossConfig, SamplingConfig
     from inrslam.rendering.fused_losses import composite_losses
+    from inrslam.rendering.losses import weighted_total
     from inrslam.rendering.sampling import sample_depths
 
     cfg, T = LossConfig(), 0.1
@@ -60,9 +61,7 @@ def bench_batch(R: int, S: int, reps: int) -> None:
     def fused_step():
         w, c, s = (x.clone().requires_grad_() for x in (w0, c0, s0))
         terms, _ = composite_losses(w, c, z, s, C, D, T, cfg.center_band, cfg.free_space_target, True, True)
-        loss = (cfg.color * terms["color"] + cfg.depth * terms["depth"] + cfg.free_space * terms["free_space"]
-                + cfg.center * terms["center"] + cfg.tail * terms["tail"])
-        loss.backward()
+        weighted_total(terms, cfg, True).backward()
 
     a, b = interleaved(torch_step, fused_step, reps)
     print(f"{R} rays x {S}: autograd {a:.2f} ms, fused {b:.2f} ms per forward + backward: {a / b:.2f}x", flush=True)

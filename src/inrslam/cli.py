@@ -195,7 +195,7 @@ def _check_device(cfg) -> None:
     if device.type != "cpu":
         for key, value in (("field.kernel", cfg.field.kernel), ("field.decoder_kernel", cfg.field.decoder_kernel),
                            ("loss.kernel", cfg.loss.kernel)):
-            if str(getattr(value, "value", value)) == "numba":
+            if value == "numba":  # str enums (KernelChoice) compare equal to their value
                 raise ConfigError(f"config key '{key}': 'numba' runs on CPU tensors only and the run's device is "
                                   f"{device}; use auto (numba on CPU, torch elsewhere) or torch")
 

@@ -106,7 +106,6 @@ def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, 
     color = safe_mean((out.rgb - target_rgb) ** 2)
     depth = safe_mean((out.depth - target_depth) ** 2, valid)
     terms = {"color": color, "depth": depth}
-    total = cfg.color * color + cfg.depth * depth
     if sdf_terms:
         front, center, tail = sdf_masks(out.z, target_depth, truncation, cfg.center_band,
                                         cfg.behind if behind is None else behind)
@@ -115,13 +114,20 @@ def compute_losses(out: RenderOutput, target_rgb: Tensor, target_depth: Tensor, 
         terms["free_space"] = masked_sample_mean(fs_err, front, reduction)
         terms["center"] = masked_sample_mean(sdf_err, center, reduction)
         terms["tail"] = masked_sample_mean(sdf_err, tail, reduction)
-        total = (total + cfg.free_space * terms["free_space"] + cfg.center * terms["center"]
-                 + cfg.tail * terms["tail"])
     else:
         zero = out.sdf.new_zeros(())
         terms.update(free_space=zero, center=zero.clone(), tail=zero.clone())
-    terms["total"] = total
+    terms["total"] = weighted_total(terms, cfg, sdf_terms)
     return terms
+
+
+def weighted_total(terms: dict[str, Tensor], cfg: LossConfig, sdf_terms: bool) -> Tensor:
+    """L = λ_p L_p + λ_g L_g (+ λ_fs L_fs + λ_c L_c + λ_t L_t when `sdf_terms`), the module docstring's total."""
+    total = cfg.color * terms["color"] + cfg.depth * terms["depth"]
+    if sdf_terms:
+        total = (total + cfg.free_space * terms["free_space"] + cfg.center * terms["center"]
+                 + cfg.tail * terms["tail"])
+    return total
 
 
 def render_losses(field: Callable[[Tensor], Any], renderer, origins: Tensor, dirs: Tensor, z: Tensor,
@@ -148,13 +154,9 @@ def render_losses(field: Callable[[Tensor], Any], renderer, origins: Tensor, dir
     terms, comp = composite_losses(*args, truncation, cfg.center_band, cfg.free_space_target,
                                    LossReduction(cfg.reduction) is LossReduction.PER_RAY, sdf_terms,
                                    cfg.behind if behind is None else behind)
-    total = cfg.color * terms["color"] + cfg.depth * terms["depth"]
-    if sdf_terms:
-        total = (total + cfg.free_space * terms["free_space"] + cfg.center * terms["center"]
-                 + cfg.tail * terms["tail"])
-    else:  # as `compute_losses`: zeros without gradient, left out of the total
+    if not sdf_terms:  # as `compute_losses`: zeros without gradient, left out of the total
         terms.update({k: terms[k].detach() for k in ("free_space", "center", "tail")})
-    terms["total"] = total
+    terms["total"] = weighted_total(terms, cfg, sdf_terms)
     out = RenderOutput(comp[:, :3], comp[:, 3], comp[:, 4], comp[:, 5], weights, sdf, z, normals)
     return terms, out
 

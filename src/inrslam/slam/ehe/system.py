@@ -97,7 +97,7 @@ class EheSystem(SlamSystem):
         o, d = world_rays(c2w, dirs * depth[:, None])
         return o + d
 
-    def _map_ehe(self, i: int, ft: FrameTensors, c2w: torch.Tensor, depth: dict | None = None) -> None:
+    def _map_ehe(self, i: int, ft: FrameTensors, c2w: torch.Tensor, depth: dict) -> None:
         """Allocate, initialise priors and optimise over the keyframe window for frame i; `depth` (which depth
         was mapped: `depth_filtered`, `depth_noise`) goes into its map record."""
         c, s = self.cfg.ehe, self.state
@@ -118,7 +118,7 @@ class EheSystem(SlamSystem):
             s.init_ms = ms
         else:
             s.map_ms.append(ms)
-        self._record(i, ms, res, window, alloc.new.numel(), accepted, depth or {})
+        self._record(i, ms, res, window, alloc.new.numel(), accepted, depth)
         last = len(s.kf_voxels) - 1
         if i == 0 or needs_keyframe(voxel_overlap(observed, s.kf_voxels[last]), i - s.store.frame_ids[-1], c):
             self._add_keyframe(i, ft)
