@@ -49,8 +49,8 @@ class FieldConfig:
     hidden_dim: int = 32  # hidden width of the grid / plane decoders and of the MLP heads
     truncation: float = 0.1  # SDF truncation T, metres (field SDF is in units of T)
     kernel: KernelChoice = KernelChoice.AUTO  # lookup implementation: auto | torch | numba
-    decoder_kernel: KernelChoice = KernelChoice.TORCH  # grid decoders (dense, hash, hybrids): torch (autograd) |
-    # numba (fused, CPU) | auto (numba on CPU); plane decoders and the MLP always use torch (docs/speed.md)
+    decoder_kernel: KernelChoice = KernelChoice.TORCH  # grid and plane decoders: torch (autograd) | numba (fused,
+    # CPU) | auto (numba on CPU); the MLP representation always uses torch (docs/speed.md)
     faithful: bool = False  # reproduce the original's quirks ([0,1] planes, ΣP⊙Σℓ TensoRF, cubic tcnn grids)
     grid_init: float = 1e-4  # grid features init U(−grid_init, grid_init)
     plane_init_std: float = 0.01  # plane / line features init N(0, plane_init_std²)

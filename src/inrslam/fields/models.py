@@ -19,6 +19,7 @@ from inrslam.fields.config import Coupling, FieldConfig, KernelChoice
 from inrslam.fields.encoders import GridEncoder, TensoRFEncoder, TriPlaneEncoder
 from inrslam.fields.gamma import FourierFeatures, make_gamma
 from inrslam.fields.kernels.mlp import mlp2
+from inrslam.fields.kernels.mlp3 import mlp3
 from inrslam.fields.registry import ENCODINGS
 from inrslam.fields.resolution import plane_sizes
 
@@ -48,6 +49,15 @@ def plane_decoder(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
     """"Decomp decoder" (docs/spec.md §3.6): Linear(in→h) ReLU Linear(h→h) ReLU Linear(h→out), with biases."""
     return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
                          nn.Linear(hidden, out_dim))
+
+
+def run_plane_decoder(net: nn.Sequential, x: torch.Tensor, backend: str) -> torch.Tensor:
+    """A `plane_decoder` on x (N, in) -> (N, out): backend "torch" runs the module itself (bit-for-bit as ever),
+    "numba" / "auto" the fused kernel `mlp3` (`field.decoder_kernel`)."""
+    if backend == "torch":
+        return net(x)
+    l1, l2, l3 = (cast(nn.Linear, net[k]) for k in (0, 2, 4))
+    return mlp3(x, l1.weight, l1.bias, l2.weight, l2.bias, l3.weight, l3.bias, backend)
 
 
 def mlp_trunk(in_dim: int, width: int, depth: int) -> nn.Sequential:
@@ -89,10 +99,10 @@ class Field(nn.Module):
         raise NotImplementedError
 
     def decode(self, net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
-        """Decoder `net` on x (N, in) -> (N, out): grid decoders (Linear-ReLU-Linear, no biases) by
-        `field.decoder_kernel`, plane decoders (3 layers with biases) in torch."""
-        if len(net) != 3:
-            return net(x)
+        """Decoder `net` on x (N, in) -> (N, out) by `field.decoder_kernel`: grid decoders (Linear-ReLU-Linear, no
+        biases) and plane decoders (three layers with biases)."""
+        if len(net) == 5:
+            return run_plane_decoder(net, x, self.decoder_backend)
         return run_grid_decoder(net, x, self.decoder_backend)
 
 

@@ -135,13 +135,13 @@ def mlp2(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, backend: str = "au
                          "(expected (N, I), (H, I), (O, H))")
     fusable = (x.device.type == "cpu" and w1.device.type == "cpu" and w2.device.type == "cpu"
                and x.dtype == w1.dtype == w2.dtype and x.dtype in (torch.float32, torch.float64))
-    backend = _resolve(backend, fusable)
+    backend = resolve_backend(backend, fusable)
     if backend == "torch":
         return mlp2_torch(x, w1, w2)
     return Mlp2Fn.apply(x, w1, w2)
 
 
-def _resolve(backend: str, fusable: bool) -> str:
+def resolve_backend(backend: str, fusable: bool) -> str:
     """The backend that runs: the reference wherever a second-order backward may follow (inside
     ``kernels.second_order()``: NeuS normals), else numba for "auto" where fusable; an impossible "numba" errors."""
     if second_order_active():
