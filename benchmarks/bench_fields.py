@@ -156,6 +156,29 @@ def main() -> None:
             add(f"grid decoders 7-32-1/3 fwd+bwd->{wrt}", n, timeit(dec("numba"), args.reps),
                 timeit(dec("torch"), args.reps))
 
+    # Plane decoders (tri-plane, TensoRF: 7 -> 32 -> 32 -> 1 and -> 3, with biases): fused mlp3 vs autograd (the
+    # nn.Sequential the fields run with field.decoder_kernel=torch).
+    from inrslam.fields.models import plane_decoder, run_plane_decoder
+
+    for n in (61_440, 122_880):
+        x = torch.randn(n, 7)
+        for wrt in ("inputs", "params"):
+            nets = [plane_decoder(7, 32, 1), plane_decoder(7, 32, 3)]
+            for net in nets:
+                net.requires_grad_(wrt == "params")
+            xg = x.clone().requires_grad_()
+
+            def pdec(kernel, xg=xg, nets=nets):
+                def run():
+                    xg.grad = None
+                    for net in nets:
+                        net.zero_grad(set_to_none=True)
+                    sum(run_plane_decoder(net, xg, kernel).sum() for net in nets).backward()
+                return run
+
+            add(f"plane decoders 7-32-32-1/3 fwd+bwd->{wrt}", n, timeit(pdec("numba"), args.reps),
+                timeit(pdec("torch"), args.reps))
+
     # Dense 2-level grid (24 cm, 2 cm) on the 6 x 5 x 3 m box: full mapping step.
     for n in (61_440, 122_880):
         res = {}
@@ -207,7 +230,7 @@ def main() -> None:
             f"+{res['torch'][1]:.0f} MiB ref ({res['torch'][1] / pm:.2f}x)")
 
     print("\ntargets: hash >= 10x (params and inputs), dense mapping step >= 4x with peak <= 2x params, "
-          "tri-plane >= 2x; grid decoders: none (field.decoder_kernel, docs/speed.md)")
+          "tri-plane >= 2x; grid and plane decoders: none (field.decoder_kernel, docs/speed.md)")
 
 
 if __name__ == "__main__":

@@ -237,3 +237,70 @@ def test_reference_table_gradient_is_the_same_on_every_run():
     cot = torch.randn(x.shape[0], layout.n_entries, 2)
     grads = {_grads("torch", layout, table, x, cot)[2].numpy().tobytes() for _ in range(5)}
     assert len(grads) == 1
+
+
+def _corner_loop(layout, xn, tab, g):
+    """The generic kernels' corner loop (before lines and planes were unrolled), transliterated to numpy scalars
+    with numba's arithmetic (float64 weights times the table's dtype; products of two float32 values in float32):
+    the forward (N,E,F), the input gradient (N,3) float64 and the table gradient (M,F) of cotangent g."""
+    from inrslam.fields.kernels.function import _meta
+    from inrslam.fields.kernels.generic import _corner, _setup
+    from inrslam.fields.kernels.indexing import vertex_row
+
+    ndim, axes, res, scale, offset, stride, hashed, rows, row_off = _meta(layout)
+    N, E, F = xn.shape[0], layout.n_entries, tab.shape[1]
+    out, gx, gt = np.zeros((N, E, F), tab.dtype), np.zeros((N, 3)), np.zeros_like(tab)
+    f64 = np.float64
+    for n in range(N):
+        for e in range(E):
+            d, i0, i1, i2, w0, w1, w2, d0, d1, d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
+            gu = [0.0, 0.0, 0.0]
+            for c in range(1 << d):
+                b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
+                wt = f64(t0) * f64(t1) * f64(t2)
+                r = row_off[e] + vertex_row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2, *stride[e])
+                dot = f64(0.0)
+                for f in range(F):
+                    out[n, e, f] = f64(out[n, e, f]) + wt * f64(tab[r, f])
+                    gt[r, f] = f64(gt[r, f]) + wt * f64(g[n, e, f])
+                    dot = dot + f64(tab[r, f] * g[n, e, f])
+                s = [1.0 if b else -1.0 for b in (b0, b1, b2)]
+                gu[0] += dot * s[0] * t1 * t2
+                gu[1] += dot * t0 * s[1] * t2
+                gu[2] += dot * t0 * t1 * s[2]
+            for k, dk in enumerate((d0, d1, d2)[:d]):
+                gx[n, axes[e, k]] += gu[k] * dk
+    return out, gx, gt
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_unrolled_lines_and_planes_are_bit_identical_to_the_corner_loop(dtype):
+    """Lines and planes run unrolled in the generic kernels (forward, input gradient, sparse table gradient): bit
+    for bit the corner loop's results, so `paper` runs with tri-plane / TensoRF fields keep their bits. Points inside,
+    outside, on grid vertices (zero-weight corners) and with a NaN coordinate."""
+    from inrslam.fields.kernels import generic
+    from inrslam.fields.kernels.function import _meta, _sparse_out, row_slots
+
+    layout = TableLayout.build(entry_sets()["planes+lines"])
+    rng = np.random.default_rng()
+    tab = rng.standard_normal((layout.total_rows, 2)).astype(dtype)
+    xn = rng.uniform(-0.1, 1.1, (60, 3)).astype(dtype)
+    xn[:10] = np.round(xn[:10] * 6) / 6
+    xn[10, 1] = np.nan
+    g = rng.standard_normal((60, layout.n_entries, 2)).astype(dtype)
+    out_ref, gx_ref, gt_ref = _corner_loop(layout, xn, tab, g)
+    out = np.zeros_like(out_ref)
+    generic.interp_forward(xn, tab, *_meta(layout), out)
+    gx = np.zeros((60, 3))
+    generic.interp_backward_x(xn, tab, g, *_meta(layout), gx)
+    cap_off, out_rows, out_vals = _sparse_out(layout, 60, 2, dtype)
+    counts = np.zeros(layout.n_entries, np.int64)
+    generic.interp_backward_table_sparse(xn, g, *_meta(layout), row_slots(layout), cap_off, out_rows, out_vals,
+                                         counts)
+    gt = np.zeros_like(tab)
+    for e in range(layout.n_entries):
+        sl = slice(cap_off[e], cap_off[e] + counts[e])
+        assert np.unique(out_rows[sl]).size == counts[e]
+        gt[out_rows[sl]] = out_vals[sl]
+    assert np.array_equal(out, out_ref) and np.array_equal(gx, gx_ref) and np.array_equal(gt, gt_ref)
+    assert np.abs(gx).sum() > 0 and np.all(np.isfinite(out))

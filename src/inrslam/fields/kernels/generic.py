@@ -75,6 +75,52 @@ def _corner(c, d, w0, w1, w2):
     return b0, b1, b2, t0, t1, t2
 
 
+# Unrolled corners of unhashed entries of dimension 1 (lines) and 2 (planes): the same floating-point operations in
+# the same order as the generic corner loop (a weight t0·t1·t2 with unused factors 1.0 is the product of the used
+# ones exactly; (dot·s)·t with s = ±1 is ±(dot·t) exactly), so results are bit-identical to it, without the loop's
+# per-corner branches and index arithmetic. Corner order as `_corner`: c = x + 2y.
+
+
+@njit(inline="always", cache=True)
+def _low_dim(d, hashed_e):
+    """True for the entries the unrolled paths serve: unhashed lines and planes."""
+    return not hashed_e and d <= 2
+
+
+@njit(inline="always", cache=True)
+def _acc_out(out, n, e, table, r, wt):
+    """out[n,e,:] += wt · T[r, :]."""
+    for f in range(table.shape[1]):
+        out[n, e, f] += wt * table[r, f]
+
+
+@njit(inline="always", cache=True)
+def _dot(table, r, g, n, e):
+    """⟨T[r], g[n,e]⟩ accumulated as the generic loop does."""
+    dot = 0.0
+    for f in range(table.shape[1]):
+        dot += table[r, f] * g[n, e, f]
+    return dot
+
+
+@njit(inline="always", cache=True)
+def _touch(slot, out_rows, out_vals, cb, cnt, r, wt, g, n, e):
+    """Adds wt · g[n,e] to row r's sparse gradient (a zero weight does not touch the row; the first touch writes the
+    row into out_rows[cb + cnt] and its values, so out_vals need not be zeroed); returns the new count."""
+    if wt == 0.0:
+        return cnt
+    s = slot[r]
+    if s < 0:
+        s = cnt
+        slot[r] = cnt
+        out_rows[cb + cnt] = r
+        for f in range(out_vals.shape[1]):
+            out_vals[cb + s, f] = wt * g[n, e, f]
+        return cnt + 1
+    for f in range(out_vals.shape[1]):
+        out_vals[cb + s, f] += wt * g[n, e, f]
+    return cnt
+
 @njit(parallel=True, cache=True, fastmath=False)
 def interp_forward(xn, table, ndim, axes, res, scale, offset, stride, hashed, rows, row_off, out):
     """out[n,e,:] = Σ_c w_c(n,e) · T[row_c(n,e), :]   (out pre-zeroed, (N,E,F))."""
@@ -85,6 +131,21 @@ def interp_forward(xn, table, ndim, axes, res, scale, offset, stride, hashed, ro
         for e in range(E):
             d, i0, i1, i2, w0, w1, w2, _d0, _d1, _d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
             base = row_off[e]
+            if _low_dim(d, hashed[e]):
+                s0 = stride[e, 0]
+                ra = base + i0 * s0 + i1 * stride[e, 1] + i2 * stride[e, 2]
+                if d == 1:
+                    _acc_out(out, n, e, table, ra, 1.0 - w0)
+                    _acc_out(out, n, e, table, ra + s0, w0)
+                else:
+                    s1 = stride[e, 1]
+                    u0 = 1.0 - w0
+                    u1 = 1.0 - w1
+                    _acc_out(out, n, e, table, ra, u0 * u1)
+                    _acc_out(out, n, e, table, ra + s0, w0 * u1)
+                    _acc_out(out, n, e, table, ra + s1, u0 * w1)
+                    _acc_out(out, n, e, table, ra + s0 + s1, w0 * w1)
+                continue
             for c in range(1 << d):
                 b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
                 wt = t0 * t1 * t2
@@ -107,6 +168,32 @@ def interp_backward_x(xn, table, g, ndim, axes, res, scale, offset, stride, hash
             gu0 = 0.0
             gu1 = 0.0
             gu2 = 0.0
+            if _low_dim(d, hashed[e]):
+                s0 = stride[e, 0]
+                ra = base + i0 * s0 + i1 * stride[e, 1] + i2 * stride[e, 2]
+                if d == 1:
+                    gu0 -= _dot(table, ra, g, n, e)
+                    gu0 += _dot(table, ra + s0, g, n, e)
+                    gx[n, axes[e, 0]] += gu0 * d0
+                else:
+                    s1 = stride[e, 1]
+                    u0 = 1.0 - w0
+                    u1 = 1.0 - w1
+                    da = _dot(table, ra, g, n, e)
+                    db = _dot(table, ra + s0, g, n, e)
+                    dc = _dot(table, ra + s1, g, n, e)
+                    dd = _dot(table, ra + s0 + s1, g, n, e)
+                    gu0 -= da * u1
+                    gu1 -= da * u0
+                    gu0 += db * u1
+                    gu1 -= db * w0
+                    gu0 -= dc * w1
+                    gu1 += dc * u0
+                    gu0 += dd * w1
+                    gu1 += dd * w0
+                    gx[n, axes[e, 0]] += gu0 * d0
+                    gx[n, axes[e, 1]] += gu1 * d1
+                continue
             for c in range(1 << d):
                 b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
                 r = base + vertex_row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
@@ -156,7 +243,6 @@ def interp_backward_table_sparse(xn, g, ndim, axes, res, scale, offset, stride, 
     entry and is restored to −1 on exit; cost is O(N·2^D) per entry, independent of the table size."""
     N = xn.shape[0]
     E = ndim.shape[0]
-    F = out_vals.shape[1]
     for ie in prange(E):
         e = balanced_entry(ie, E)
         base = row_off[e]
@@ -164,24 +250,27 @@ def interp_backward_table_sparse(xn, g, ndim, axes, res, scale, offset, stride, 
         cnt = 0
         for n in range(N):
             d, i0, i1, i2, w0, w1, w2, _d0, _d1, _d2 = _setup(xn, n, e, ndim, axes, res, scale, offset)
+            if _low_dim(d, hashed[e]):
+                s0 = stride[e, 0]
+                ra = base + i0 * s0 + i1 * stride[e, 1] + i2 * stride[e, 2]
+                if d == 1:
+                    cnt = _touch(slot, out_rows, out_vals, cb, cnt, ra, 1.0 - w0, g, n, e)
+                    cnt = _touch(slot, out_rows, out_vals, cb, cnt, ra + s0, w0, g, n, e)
+                else:
+                    s1 = stride[e, 1]
+                    u0 = 1.0 - w0
+                    u1 = 1.0 - w1
+                    cnt = _touch(slot, out_rows, out_vals, cb, cnt, ra, u0 * u1, g, n, e)
+                    cnt = _touch(slot, out_rows, out_vals, cb, cnt, ra + s0, w0 * u1, g, n, e)
+                    cnt = _touch(slot, out_rows, out_vals, cb, cnt, ra + s1, u0 * w1, g, n, e)
+                    cnt = _touch(slot, out_rows, out_vals, cb, cnt, ra + s0 + s1, w0 * w1, g, n, e)
+                continue
             for c in range(1 << d):
                 b0, b1, b2, t0, t1, t2 = _corner(c, d, w0, w1, w2)
                 wt = t0 * t1 * t2
-                if wt == 0.0:  # zero-weight corner: not touched
-                    continue
                 r = base + vertex_row(hashed[e], rows[e], i0 + b0, i1 + b1, i2 + b2,
                                 stride[e, 0], stride[e, 1], stride[e, 2])
-                s = slot[r]
-                if s < 0:  # first touch: write (out_vals need not be zeroed)
-                    s = cnt
-                    slot[r] = cnt
-                    out_rows[cb + cnt] = r
-                    cnt += 1
-                    for f in range(F):
-                        out_vals[cb + s, f] = wt * g[n, e, f]
-                else:
-                    for f in range(F):
-                        out_vals[cb + s, f] += wt * g[n, e, f]
+                cnt = _touch(slot, out_rows, out_vals, cb, cnt, r, wt, g, n, e)
         counts[e] = cnt
         for k in range(cnt):
             slot[out_rows[cb + k]] = -1

@@ -8,9 +8,8 @@ block's (BLOCK, 32) hidden array stays in cache; the backward recomputes it inst
 ``mlp2_torch``; ``mlp2`` dispatches. Results do not depend on the thread count: every block is one set of BLAS
 calls (small enough that OpenBLAS runs each on one thread: M·N·K ≤ 262 144 for the 5-7 inputs and 32 hidden units
 of our decoders; tested) and the weight gradients' per-block partial sums are added in block order. (An earlier
-per-sample kernel, the hidden vector in a scratch array, ran at 0.37x this speed; a per-sample kernel of the plane
-decoder, whose 32x32 middle layer is a batched GEMM's job, ran at 0.4x autograd's speed: plane decoders stay in
-torch.)
+per-sample kernel, the hidden vector in a scratch array, ran at 0.37x this speed.) The plane decoders' kernel, three
+layers with biases, is ``fields.kernels.mlp3``.
 """
 
 from __future__ import annotations
