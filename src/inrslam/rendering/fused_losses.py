@@ -185,12 +185,6 @@ class CompositeLossFn(torch.autograd.Function):
                 torch.from_numpy(gs) if need_s else None, *([None] * 8))
 
 
-def fusable(*tensors: Tensor) -> bool:
-    """Whether the fused kernel can take these tensors: all on the CPU, one float32 / float64 dtype."""
-    return (all(t.device.type == "cpu" for t in tensors) and len({t.dtype for t in tensors}) == 1
-            and tensors[0].dtype in (torch.float32, torch.float64))
-
-
 def composite_losses(weights: Tensor, rgb: Tensor, z: Tensor, sdf: Tensor, target_rgb: Tensor, target_depth: Tensor,
                      truncation: float, center_band: float, free_space_target: float, per_ray: bool,
                      sdf_terms: bool, behind: float | Tensor = 1.0) -> tuple[dict[str, Tensor], Tensor]:

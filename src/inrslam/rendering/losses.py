@@ -28,9 +28,10 @@ import torch
 from torch import Tensor
 
 from inrslam.fields.config import KernelChoice
+from inrslam.fields.kernels.function import cpu_floats
 from inrslam.rendering.compositing import composite
 from inrslam.rendering.config import LossConfig, LossReduction
-from inrslam.rendering.fused_losses import composite_losses, fusable
+from inrslam.rendering.fused_losses import composite_losses
 from inrslam.rendering.render import RenderOutput, render_samples
 
 
@@ -145,9 +146,9 @@ def render_losses(field: Callable[[Tensor], Any], renderer, origins: Tensor, dir
     sdf, rgb, weights, normals = render_samples(field, renderer, origins, dirs, z, truncation)
     args = (weights, rgb, z, sdf, target_rgb, target_depth)
     kernel = KernelChoice(cfg.kernel)
-    if kernel is KernelChoice.NUMBA and not fusable(*args):
+    if kernel is KernelChoice.NUMBA and not cpu_floats(*args):
         raise ValueError("loss.kernel 'numba' needs CPU float32/float64 tensors of one dtype; use 'auto' or 'torch'")
-    if kernel is KernelChoice.TORCH or not fusable(*args) or z.requires_grad or target_rgb.requires_grad \
+    if kernel is KernelChoice.TORCH or not cpu_floats(*args) or z.requires_grad or target_rgb.requires_grad \
             or target_depth.requires_grad:  # the kernel differentiates weights, colours and SDF only
         out = RenderOutput(*composite(weights, rgb, z), weights, sdf, z, normals)
         return compute_losses(out, target_rgb, target_depth, cfg, truncation, sdf_terms, behind), out

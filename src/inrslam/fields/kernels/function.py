@@ -189,6 +189,12 @@ def second_order_active() -> bool:
     return _SCOPES.second_order > 0
 
 
+def cpu_floats(*tensors: torch.Tensor) -> bool:
+    """Whether the fused numba kernels can take these tensors: all on the CPU, of one dtype, float32 or float64."""
+    return (all(t.device.type == "cpu" for t in tensors) and len({t.dtype for t in tensors}) == 1
+            and tensors[0].dtype in (torch.float32, torch.float64))
+
+
 @contextlib.contextmanager
 def input_grad_only():
     """Within this scope, backward passes of ``MultilinearFn`` return no table gradient: for

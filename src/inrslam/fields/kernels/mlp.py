@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from inrslam.fields.kernels.function import second_order_active
+from inrslam.fields.kernels.function import cpu_floats, second_order_active
 
 #: Samples per block of the parallel loops (fixed, so that the weight gradients sum in the same order on any
 #: number of threads).
@@ -132,9 +132,7 @@ def mlp2(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, backend: str = "au
     if x.dim() != 2 or w1.dim() != 2 or w2.dim() != 2 or x.shape[1] != w1.shape[1] or w2.shape[1] != w1.shape[0]:
         raise ValueError(f"mlp2: shapes x {tuple(x.shape)}, w1 {tuple(w1.shape)}, w2 {tuple(w2.shape)} do not chain "
                          "(expected (N, I), (H, I), (O, H))")
-    fusable = (x.device.type == "cpu" and w1.device.type == "cpu" and w2.device.type == "cpu"
-               and x.dtype == w1.dtype == w2.dtype and x.dtype in (torch.float32, torch.float64))
-    backend = resolve_backend(backend, fusable)
+    backend = resolve_backend(backend, cpu_floats(x, w1, w2))
     if backend == "torch":
         return mlp2_torch(x, w1, w2)
     return Mlp2Fn.apply(x, w1, w2)

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from inrslam.fields.kernels.function import cpu_floats
 from inrslam.fields.kernels.mlp import FASTMATH, relu_inplace, relu_mask_inplace, resolve_backend
 
 #: Samples per block (fixed: the gradients' block sums do not depend on the thread count). 256 keeps the hidden
@@ -160,9 +161,6 @@ def mlp3(x: torch.Tensor, w1: torch.Tensor, b1: torch.Tensor, w2: torch.Tensor, 
         raise ValueError(f"mlp3: shapes x {tuple(x.shape)}, weights {[tuple(w.shape) for w in ws]}, biases "
                          f"{[tuple(b.shape) for b in bs]} do not chain (expected (N, I), (H1, I), (H2, H1), (O, H2) "
                          "and (H1,), (H2,), (O,))")
-    tensors = (x, *ws, *bs)
-    fusable = (all(t.device.type == "cpu" for t in tensors) and len({t.dtype for t in tensors}) == 1
-               and x.dtype in (torch.float32, torch.float64))
-    if resolve_backend(backend, fusable) == "torch":
+    if resolve_backend(backend, cpu_floats(x, *ws, *bs)) == "torch":
         return mlp3_torch(x, w1, b1, w2, b2, w3, b3)
     return Mlp3Fn.apply(x, w1, b1, w2, b2, w3, b3)

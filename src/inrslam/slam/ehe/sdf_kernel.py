@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from inrslam.fields.kernels.function import second_order_active, tri_meta
+from inrslam.fields.kernels.function import cpu_floats, second_order_active, tri_meta
 from inrslam.fields.kernels.mlp import BLOCK, FASTMATH, relu_inplace, relu_mask_inplace
 from inrslam.fields.kernels.trilinear import tri_corners, tri_weights
 
@@ -162,9 +162,7 @@ class EheSdfFn(torch.autograd.Function):
 
 def fusable(x: torch.Tensor, f: torch.Tensor, prior: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> bool:
     """True where `ehe_sdf` can run: CPU float32/float64 tensors of one dtype, a one-output decoder, first-order."""
-    tensors = (x, f, prior, w1, w2)
-    return (all(t.device.type == "cpu" for t in tensors) and len({t.dtype for t in tensors}) == 1
-            and x.dtype in (torch.float32, torch.float64) and w2.shape[0] == 1 and not second_order_active())
+    return cpu_floats(x, f, prior, w1, w2) and w2.shape[0] == 1 and not second_order_active()
 
 
 def ehe_sdf(x: torch.Tensor, f: torch.Tensor, p: torch.Tensor, voxels, w1: torch.Tensor,
