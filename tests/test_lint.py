@@ -12,7 +12,7 @@ import pytest
 
 import inrslam
 
-LINTED = ["slam", "rendering", "config", "io", "viewer"]
+LINTED = ["slam", "rendering", "config", "io", "viewer", "fields", "geometry", "eval", "data"]
 
 
 def test_ruff_is_clean_on_the_linted_packages():

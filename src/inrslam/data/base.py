@@ -7,7 +7,7 @@ import math
 import os
 import re
 from pathlib import Path
-from typing import ClassVar, Iterator, Optional, Sequence
+from typing import ClassVar, Iterator, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -146,7 +146,8 @@ class FolderDataset:
             vals = list(self.cfg.intrinsics)
             if len(vals) != 4:
                 raise ConfigError(f"data.intrinsics: expected [fx, fy, cx, cy], got {vals}")
-            return Intrinsics(*(float(v) for v in vals), width, height).checked("data.intrinsics")
+            fx, fy, cx, cy = (float(v) for v in vals)
+            return Intrinsics(fx, fy, cx, cy, width, height).checked("data.intrinsics")
         if default is None:
             raise DataError(f"{self.root}: no intrinsics found and data.intrinsics not set")
         default.checked(f"{self.root}: the {self.name} camera parameters")
@@ -169,7 +170,8 @@ class FolderDataset:
         if len(vals) != 4:
             raise ConfigError(f"data.color_intrinsics: expected [fx, fy, cx, cy], got {list(vals)}")
         width, height = image_size(self._rgb[0])
-        return Intrinsics(*(float(v) for v in vals), width, height).checked("data.color_intrinsics")
+        fx, fy, cx, cy = (float(v) for v in vals)
+        return Intrinsics(fx, fy, cx, cy, width, height).checked("data.color_intrinsics")
 
     def __len__(self) -> int:
         return len(self._rgb)
@@ -235,7 +237,7 @@ class FolderDataset:
         return f"{type(self).__name__}(root={str(self.root)!r}, frames={len(self)}, intrinsics={self.intrinsics})"
 
 
-def known_bounds(table: dict[str, Sequence[Sequence[float]]], name: str) -> Optional[np.ndarray]:
+def known_bounds(table: Mapping[str, Sequence[Sequence[float]]], name: str) -> Optional[np.ndarray]:
     """(3, 2) bounds from `table` when the folder `name` is a key, else None."""
     b = table.get(name)
     return None if b is None else np.array(b, dtype=np.float64)

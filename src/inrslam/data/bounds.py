@@ -54,8 +54,8 @@ def estimate_bounds(
     allp = np.concatenate(pts) if pts else np.zeros((0, 3))
     if len(allp) == 0:
         raise DataError(
-            f"{dataset.root}: cannot estimate scene bounds: no valid depth in {len(idx)} frames spread over the sequence; "
-            "set data.bounds"
+            f"{dataset.root}: cannot estimate scene bounds: no valid depth in {len(idx)} frames spread over the "
+            "sequence; set data.bounds"
         )
     lo = np.percentile(allp, percentile, axis=0)
     hi = np.percentile(allp, 100.0 - percentile, axis=0)

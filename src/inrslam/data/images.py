@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
@@ -51,7 +52,8 @@ def read_rgb(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np
         except (ValueError, OSError) as e:
             raise DataError(f"{path}: cannot convert mode {img.mode} to RGB ({e})") from None
     if size is not None and img.size != tuple(size):
-        img = img.resize(tuple(size), Image.BILINEAR)
+        # Pillow sets its module-level filter names (BILINEAR, ...) at import, so its annotations lack them
+        img = img.resize(cast("tuple[int, int]", tuple(size)), Image.BILINEAR)  # type: ignore[attr-defined]
     return np.asarray(img, dtype=np.float32) / 255.0
 
 

@@ -27,9 +27,9 @@ from inrslam.data.base import (
     read_camera_json,
     require_dir,
 )
-from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.data.posefiles import check_pose, read_pose_rows
 from inrslam.data.registry import DATASETS
+from inrslam.geometry.intrinsics import Intrinsics
 
 REPLICA_BOUNDS = {
     "room0": [[-2.9, 8.9], [-3.2, 5.5], [-3.5, 3.3]],

@@ -19,11 +19,11 @@ from typing import Optional
 import numpy as np
 
 from inrslam.data.base import FolderDataset, check_count, first_existing, numbered_files, pair_numbered, require_dir
-from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.data.images import image_size
 from inrslam.data.posefiles import check_pose, read_matrix, read_pose_matrix
 from inrslam.data.registry import DATASETS
 from inrslam.errors import DataError
+from inrslam.geometry.intrinsics import Intrinsics
 
 
 @DATASETS.register("scannet", help="ScanNet SensReader export: color/, depth/, pose/, intrinsic/intrinsic_depth.txt")

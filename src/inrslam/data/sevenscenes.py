@@ -19,11 +19,11 @@ from typing import Optional
 import numpy as np
 
 from inrslam.data.base import FolderDataset, first_existing, numbered_files, pair_numbered
-from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.data.images import image_size
 from inrslam.data.posefiles import check_pose, read_matrix, read_pose_matrix
 from inrslam.data.registry import DATASETS
 from inrslam.errors import DataError
+from inrslam.geometry.intrinsics import Intrinsics
 
 _COLOUR = r"frame-(\d+)\.color\.(?:jpg|png)"
 _DEPTH = r"frame-(\d+)\.depth\.png"

@@ -153,6 +153,7 @@ class TUMDataset(FolderDataset):
             self._valid = ok
         self.gt_file = gt_file
         cam_file = self.root / "intrinsics.json"  # written by inrslam.scenes.export_tum (not part of TUM)
+        cam: dict[str, float] | tuple[float, float, float, float]  # the export's JSON, else a TUM_INTRINSICS row
         if cam_file.is_file():
             cam = read_camera_json(cam_file)
             if self.cfg.depth_scale is None and "depth_scale" in cam:

@@ -140,7 +140,8 @@ def lpips_available() -> tuple[bool, str]:
     """
     spec = importlib.util.find_spec("lpips")
     if spec is None or spec.origin is None:
-        return False, "LPIPS unavailable: the 'lpips' package is not installed (inrslam does not download it or its weights)"
+        return False, ("LPIPS unavailable: the 'lpips' package is not installed (inrslam does not download it or its "
+                       "weights)")
     lin = Path(spec.origin).parent / "weights" / "v0.1" / "alex.pth"
     if not lin.is_file():
         return False, f"LPIPS unavailable: linear-layer weights not found at {lin}"

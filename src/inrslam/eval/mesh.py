@@ -26,9 +26,9 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from inrslam.eval.trajectory import align_umeyama, sim3_matrix
 from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.geometry.pinhole import pixel_directions_np, project_np
-from inrslam.eval.trajectory import align_umeyama, sim3_matrix
 
 # ----------------------------------------------------------------------------------------------------------------
 # ray casting
@@ -53,7 +53,7 @@ def ray_intersector(mesh: trimesh.Trimesh):
             "mesh ray casting (culling, depth rendering) needs Embree: pip install 'inrslam[embree]' (embreex); "
             "trimesh's slow fallback would need the 'rtree' package, which is not installed either"
         )
-    from trimesh.ray.ray_triangle import RayMeshIntersector
+    from trimesh.ray.ray_triangle import RayMeshIntersector  # type: ignore[assignment]  # the fallback, same name
 
     return RayMeshIntersector(mesh)
 
@@ -309,7 +309,8 @@ def icp_point_to_point(
         new_rmse = float(np.sqrt(np.mean(d[ok] ** 2)))
         R, t, _ = align_umeyama(x[ok], tree.data[j[ok]], with_scale=False)
         T = sim3_matrix(R, t) @ T
-        converged = it > 1 and abs(new_fit - fitness) <= rel_tol * max(fitness, 1e-12) and abs(new_rmse - rmse) <= rel_tol * max(rmse, 1e-12)
+        converged = (it > 1 and abs(new_fit - fitness) <= rel_tol * max(fitness, 1e-12)
+                     and abs(new_rmse - rmse) <= rel_tol * max(rmse, 1e-12))
         fitness, rmse = float(new_fit), new_rmse
         if converged:
             break

@@ -88,7 +88,7 @@ def load_mesh(path: PathLike) -> trimesh.Trimesh:
     return mesh
 
 
-def intrinsics_from_dict(d: Mapping[str, Any], source: str = "intrinsics") -> Intrinsics:
+def intrinsics_from_dict(d: Intrinsics | Mapping[str, Any], source: str = "intrinsics") -> Intrinsics:
     """`Intrinsics` from a mapping with keys fx, fy, cx, cy (pixels), width, height."""
     if isinstance(d, Intrinsics):
         return d

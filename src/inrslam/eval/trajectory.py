@@ -17,7 +17,6 @@ import numpy as np
 
 from inrslam.eval.config import Alignment
 
-
 # ----------------------------------------------------------------------------------------------------------------
 # alignment
 
@@ -79,7 +78,8 @@ def sim3_matrix(R: np.ndarray, t: np.ndarray, s: float = 1.0) -> np.ndarray:
 # association
 
 
-def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_diff: float = 0.02, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_diff: float = 0.02, offset: float = 0.0
+              ) -> tuple[np.ndarray, np.ndarray]:
     """One-to-one nearest-timestamp association (the TUM benchmark's `associate.py` rule).
 
     All pairs (i, j) with |ts_a[i] − (ts_b[j] + offset)| < max_diff are candidates; they are accepted greedily in
@@ -119,8 +119,8 @@ def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_diff: float = 0.02, offset
         used_a[i] = used_b[j] = True
         out_a.append(i)
         out_b.append(order_b[j])
-    out_a = np.asarray(out_a, dtype=np.int64)
-    out_b = np.asarray(out_b, dtype=np.int64)
+    out_a = np.asarray(out_a, dtype=np.int64)  # type: ignore[assignment]  # the lists become index arrays
+    out_b = np.asarray(out_b, dtype=np.int64)  # type: ignore[assignment]
     srt = np.argsort(out_a, kind="stable")
     return out_a[srt], out_b[srt]
 
@@ -146,7 +146,8 @@ def select_frames(indices: Sequence[int], *trajectories: np.ndarray) -> tuple[np
     for traj in trajectories:
         traj = np.asarray(traj)
         if idx.size and (idx.min() < 0 or idx.max() >= traj.shape[0]):
-            raise ValueError(f"select_frames: index out of range [0, {traj.shape[0]}): min {idx.min()}, max {idx.max()}")
+            raise ValueError(f"select_frames: index out of range [0, {traj.shape[0]}): min {idx.min()}, "
+                             f"max {idx.max()}")
         out.append(traj[idx])
     return tuple(out)
 
@@ -273,7 +274,8 @@ def rpe(est_c2w: np.ndarray, gt_c2w: np.ndarray, delta: int = 1) -> dict:
         E_ij = (Q_i⁻¹ Q_j)⁻¹ (P_i⁻¹ P_j)       (Q ground truth, P estimate, camera-to-world)
         e_trans = |trans(E_ij)| (m),   e_rot = angle(rot(E_ij)) (deg)
     RMSE over pairs. Every pair (i, i + delta) is used (overlapping, as the TUM tool `evaluate_rpe.py` and evo with
-    `all_pairs=True`; evo's default strides by delta, which is identical for delta = 1). RPE is invariant to any rigid transform of either trajectory, so no alignment is used.
+    `all_pairs=True`; evo's default strides by delta, which is identical for delta = 1). RPE is invariant to any
+    rigid transform of either trajectory, so no alignment is used.
 
     Args:
         est_c2w, gt_c2w: (N, 4, 4) camera-to-world of the same frames, metres.

@@ -19,6 +19,8 @@ from inrslam.fields.resolution import grid_entries, line_entries, plane_entries
 class TableEncoder(nn.Module):
     """Base: ``table (M,F)`` Parameter + ``layout`` (the E lookup entries); ``lookup(p̂) -> (N,E,F)``."""
 
+    out_dim: int  # features per point of ``forward`` (N, out_dim), set by each subclass
+
     def __init__(self, entries: list[dict], feature_dim: int, kernel: KernelChoice):
         super().__init__()
         self.layout = TableLayout.build(entries)
@@ -35,7 +37,8 @@ class TableEncoder(nn.Module):
 
 
 class GridEncoder(TableEncoder):
-    """Multi-resolution dense or hash grid: trilinear per level, levels concatenated -> (N, L·F) (docs/spec.md §3.4–3.5)."""
+    """Multi-resolution dense or hash grid: trilinear per level, levels concatenated -> (N, L·F)
+    (docs/spec.md §3.4–3.5)."""
 
     def __init__(self, extent: np.ndarray, coarse: float, fine: float, levels: int, feature_dim: int, hashed: bool,
                  log2_hashmap_size: int, faithful: bool, init: float, kernel: KernelChoice):

@@ -49,6 +49,8 @@ class OneBlob(nn.Module):
 class FourierFeatures(nn.Module):
     """Gaussian Fourier features γ(p̂) = sin(p̂ᵀB), B (3, 93) ~ N(0, 25²), fixed (buffer, not optimised; iMAP)."""
 
+    B: torch.Tensor  # (3, out_dim) buffer
+
     def __init__(self, out_dim: int = 93, sigma: float = 25.0):
         super().__init__()
         self.out_dim = out_dim
@@ -58,7 +60,7 @@ class FourierFeatures(nn.Module):
         return torch.sin(p @ self.B.to(p.dtype))
 
 
-def make_gamma(name: str) -> nn.Module:
+def make_gamma(name: str) -> Identity | OneBlob | FourierFeatures:
     """The positional encoding called ``name`` (identity | blob | freq)."""
     if name == "identity":
         return Identity()

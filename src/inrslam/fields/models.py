@@ -16,7 +16,7 @@ from torch import nn
 
 from inrslam.errors import ConfigError
 from inrslam.fields.config import Coupling, FieldConfig, KernelChoice
-from inrslam.fields.encoders import GridEncoder, TensoRFEncoder, TriPlaneEncoder
+from inrslam.fields.encoders import GridEncoder, TableEncoder, TensoRFEncoder, TriPlaneEncoder
 from inrslam.fields.gamma import FourierFeatures, make_gamma
 from inrslam.fields.kernels.mlp import mlp2
 from inrslam.fields.kernels.mlp3 import mlp3
@@ -74,6 +74,8 @@ class Field(nn.Module):
     Buffers: ``bounds (3,2)`` metres. Attribute ``truncation`` (m).
     """
 
+    bounds: torch.Tensor  # (3,2) metres, buffer
+
     def __init__(self, cfg: FieldConfig, bounds: np.ndarray):
         super().__init__()
         self.cfg = replace(cfg)
@@ -115,7 +117,7 @@ class EncoderField(Field):
 
     plane_style = False  # plane decoders (biases, 3 layers, tanh on the SDF output)
 
-    def make_encoder(self, coarse: float, fine: float) -> nn.Module:
+    def make_encoder(self, coarse: float, fine: float) -> TableEncoder:
         raise NotImplementedError
 
     def __init__(self, cfg: FieldConfig, bounds: np.ndarray):
@@ -132,7 +134,7 @@ class EncoderField(Field):
         if self.coupling is Coupling.COUPLED:
             self.rgb_net = dec(g + gd, h, 3)
         elif self.coupling is Coupling.DECOUPLED:
-            self.rgb_net = dec(gd + self.app_encoder.out_dim, h, 3)
+            self.rgb_net = dec(gd + cast(TableEncoder, self.app_encoder).out_dim, h, 3)
         else:
             self.rgb_net = dec(gd + f, h, 3)
 
@@ -147,7 +149,7 @@ class EncoderField(Field):
         if self.coupling is Coupling.COUPLED:
             rgb_in = torch.cat([h[:, 1:], gam], dim=-1)
         elif self.coupling is Coupling.DECOUPLED:
-            rgb_in = torch.cat([gam, self.app_encoder(p)], dim=-1)
+            rgb_in = torch.cat([gam, cast(TableEncoder, self.app_encoder)(p)], dim=-1)
         else:
             rgb_in = torch.cat([gam, feat], dim=-1)
         return FieldOutput(h[:, 0], self.decode(self.rgb_net, rgb_in))
@@ -181,7 +183,7 @@ class MLPField(Field):
         if self.coupling is Coupling.COUPLED:
             rgb = self.rgb_head(torch.cat([h[:, 1:], x], dim=-1))
         elif self.coupling is Coupling.DECOUPLED:
-            rgb = self.rgb_head(self.rgb_trunk(x))
+            rgb = self.rgb_head(cast(nn.Sequential, self.rgb_trunk)(x))
         else:
             rgb = self.rgb_head(t)
         return FieldOutput(h[:, 0], rgb)
@@ -190,7 +192,7 @@ class MLPField(Field):
 class _GridField(EncoderField):
     hashed = False
 
-    def make_encoder(self, coarse: float, fine: float) -> nn.Module:
+    def make_encoder(self, coarse: float, fine: float) -> TableEncoder:
         c = self.cfg
         return GridEncoder(self.extent, coarse, fine, c.levels, c.feature_dim, self.hashed, c.log2_hashmap_size,
                            c.faithful, c.grid_init, c.kernel)
@@ -212,7 +214,7 @@ class _PlaneField(EncoderField):
     plane_style = True
     encoder_type: type[TriPlaneEncoder] | type[TensoRFEncoder] = TriPlaneEncoder
 
-    def make_encoder(self, coarse: float, fine: float) -> nn.Module:
+    def make_encoder(self, coarse: float, fine: float) -> TableEncoder:
         c = self.cfg
         sizes = plane_sizes(self.extent, coarse, fine, c.levels, c.faithful)
         return self.encoder_type(sizes, c.feature_dim, c.faithful, c.plane_init_std, c.kernel)
@@ -231,7 +233,8 @@ class TensoRFField(_PlaneField):
 
 
 class _HybridField(Field):
-    """Hybrid (docs/spec.md §3.9): grid + one coarse tri-plane level for geometry, grid only for colour; coupling ignored.
+    """Hybrid (docs/spec.md §3.9): grid + one coarse tri-plane level for geometry, grid only for colour; coupling
+    ignored.
 
     s = D_s([f_grid, f_plane, γ]) (no tanh), c = D_c([γ, f_grid]); both grid decoders (no biases).
     """

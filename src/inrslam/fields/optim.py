@@ -8,7 +8,8 @@ only its touched rows r are updated,
 
 rows not touched keep their parameters and moments; t counts the steps in which the table had a gradient.
 Touched rows are the rows of a sparse gradient (fused kernels: rows read with a non-zero interpolation weight)
-or the non-zero rows of a dense one (reference path; identical except for exactly cancelling gradients), so the cost of a step scales with the rows touched, not with the table size (CPU: fused numba update).
+or the non-zero rows of a dense one (reference path; identical except for exactly cancelling gradients), so the
+cost of a step scales with the rows touched, not with the table size (CPU: fused numba update).
 """
 
 from __future__ import annotations

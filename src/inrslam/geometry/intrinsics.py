@@ -38,7 +38,8 @@ class Intrinsics:
 
     def cropped(self, edge: int) -> "Intrinsics":
         """Intrinsics after removing `edge` pixels on every side."""
-        return Intrinsics(self.fx, self.fy, self.cx - edge, self.cy - edge, self.width - 2 * edge, self.height - 2 * edge)
+        return Intrinsics(self.fx, self.fy, self.cx - edge, self.cy - edge, self.width - 2 * edge,
+                          self.height - 2 * edge)
 
 
 def reproject_image(image: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.ndarray:

@@ -77,12 +77,18 @@ def _sparse_out(layout: TableLayout, n_points: int, n_feat: int, dtype, parts: i
     return cap_off, out[0], out[1]
 
 
-def _meta(layout: TableLayout):
+#: The nine layout arrays a kernel takes after its points and table (``_meta``, ``tri_meta``): a fixed-length tuple,
+#: so that mypy can match ``kernel(xn, table, *_meta(layout), out)`` against the kernel's parameters.
+_LayoutArrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                      np.ndarray]
+
+
+def _meta(layout: TableLayout) -> _LayoutArrays:
     return (layout.ndim, layout.axes, layout.res, layout.scale, layout.offset, layout.stride, layout.hashed,
             layout.rows, layout.row_off)
 
 
-def tri_meta(layout: TableLayout):
+def tri_meta(layout: TableLayout) -> _LayoutArrays:
     """The layout arrays the trilinear kernels take: (res, scale, offset, lo, hi, stride, hashed, rows, row_off)."""
     return (layout.res, layout.scale, layout.offset, layout.lo, layout.hi, layout.stride, layout.hashed,
             layout.rows, layout.row_off)

@@ -26,7 +26,8 @@ def available_cores() -> int:
 def _numba_max() -> int:
     import numba
 
-    return int(numba.config.NUMBA_NUM_THREADS)
+    # numba.config sets its NUMBA_* names at import (from the environment), so mypy cannot see them
+    return int(numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
 
 
 def resolve_threads(requested: int) -> int:
