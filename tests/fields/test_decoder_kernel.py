@@ -7,7 +7,7 @@ import torch
 
 from inrslam.fields import kernels
 from inrslam.fields.config import FieldConfig
-from inrslam.fields.kernels.mlp import BLOCK, Mlp2Fn, mlp2, mlp2_torch
+from inrslam.fields.kernels.mlp import BLAS_SINGLE_THREAD_MNK, BLOCK, Mlp2Fn, block_rows, mlp2, mlp2_torch
 from inrslam.fields.kernels.threads import thread_scope
 from inrslam.fields.models import build_field
 
@@ -73,14 +73,28 @@ def test_analytic_case():
     assert w1.grad.tolist() == [[2.0, -4.0], [0.0, 0.0], [0.0, 0.0]]
 
 
-def test_weight_gradient_independent_of_threads():
-    x, w1, w2, cot = _inputs(5 * BLOCK + 11)
+@pytest.mark.parametrize("n_in, hidden", [(7, 32), (35, 64)])
+def test_weight_gradient_independent_of_threads(n_in, hidden):
+    """Any thread count gives the same bits, also for a wide decoder (a 16-level hash grid's 35 inputs, 64 hidden
+    units: 2240 weights, so blocks of 117 samples keep each product at OpenBLAS's single-thread size)."""
+    x, w1, w2, cot = _inputs(5 * BLOCK + 11, n_in=n_in, hidden=hidden)
     grads = []
     for n in (1, 2):
         with thread_scope(n):
             grads.append(_grads("numba", x, w1, w2, cot)[1])
     for a, b in zip(*grads):
         assert torch.equal(a, b)
+    for a, b in zip(grads[0], _grads("torch", x, w1, w2, cot)[1]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4 * max(1.0, float(b.abs().max())))
+
+
+def test_block_rows_keeps_blas_single_threaded():
+    """Samples per block: the most that keeps block x widest layer at OpenBLAS's single-thread size, at most BLOCK,
+    at least 1 (7 -> 32: 1024; 32 x 32: 256; 35 x 64: 117)."""
+    assert block_rows(7 * 32) == BLOCK == 1024
+    assert block_rows(32 * 32) == 256
+    assert block_rows(35 * 64) == 117 and 117 * 35 * 64 <= BLAS_SINGLE_THREAD_MNK < 118 * 35 * 64
+    assert block_rows(10**7) == 1 and block_rows(0) == BLOCK
 
 
 def test_auto_dispatch():

@@ -6,9 +6,12 @@ import pytest
 import torch
 
 from inrslam.fields import kernels
-from inrslam.fields.kernels.mlp3 import BLOCK, Mlp3Fn, mlp3, mlp3_torch
+from inrslam.fields.kernels.mlp import BLAS_SINGLE_THREAD_MNK
+from inrslam.fields.kernels.mlp3 import Mlp3Fn, block3, mlp3, mlp3_torch
 from inrslam.fields.kernels.threads import thread_scope
 from inrslam.fields.models import plane_decoder, run_plane_decoder
+
+BLOCK = block3(torch.empty(7, 32), torch.empty(32, 32), torch.empty(32, 3))  # the default plane decoder's: 256
 
 
 def _inputs(n, n_in=7, h1=32, h2=32, n_out=3, dtype=torch.float32, seed=None):
@@ -79,14 +82,25 @@ def test_analytic_case():
                                                  [1.0]]
 
 
-def test_gradients_independent_of_threads():
-    x, params, cot = _inputs(9 * BLOCK + 11)
-    grads = []
+@pytest.mark.parametrize("n_in, hidden", [(7, 32), (35, 64)])
+def test_gradients_independent_of_threads(n_in, hidden):
+    """Any thread count gives the same bits, also for a wider decoder (35 inputs, 64 hidden units: 64 x 64 middle
+    layer, so a smaller block keeps each product at OpenBLAS's single-thread size)."""
+    x, params, cot = _inputs(9 * BLOCK + 11, n_in=n_in, h1=hidden, h2=hidden)
+    block = block3(*params[::2])
+    assert block * max(w.shape[0] * w.shape[1] for w in params[::2]) <= BLAS_SINGLE_THREAD_MNK
+    assert block == (256 if hidden == 32 else 64)
+    runs = []
     for n in (1, 2):
         with thread_scope(n):
-            grads.append(_grads("numba", x, params, cot)[1])
-    for a, b in zip(*grads):
+            runs.append(_grads("numba", x, params, cot))
+    assert torch.equal(runs[0][0], runs[1][0])
+    for a, b in zip(runs[0][1], runs[1][1]):
         assert torch.equal(a, b)
+    out_r, grads_r = _grads("torch", x, params, cot)
+    torch.testing.assert_close(runs[0][0], out_r, rtol=1e-5, atol=1e-5)
+    for a, b in zip(runs[0][1], grads_r):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4 * max(1.0, float(b.abs().max())))
 
 
 def test_auto_dispatch():

@@ -2,12 +2,12 @@
 
 In autograd this small MLP (7 -> 32 -> 1..3 at `paper` settings) spends most of its time writing and re-reading
 (N, 32) hidden tensors: the matmuls, the ReLU and its mask, forward and backward. The numba kernels cut the samples
-into blocks of ``BLOCK``, run each block's three small matrix products through BLAS (``np.dot``: hidden layer,
+into blocks (``block_rows``), run each block's three small matrix products through BLAS (``np.dot``: hidden layer,
 output, and in the backward the input and weight gradients) and the ReLU and its mask in place on the block, so a
-block's (BLOCK, 32) hidden array stays in cache; the backward recomputes it instead of storing it. The reference is
+block's (block, 32) hidden array stays in cache; the backward recomputes it instead of storing it. The reference is
 ``mlp2_torch``; ``mlp2`` dispatches. Results do not depend on the thread count: every block is one set of BLAS
-calls (small enough that OpenBLAS runs each on one thread: M·N·K ≤ 262 144 for the 5-7 inputs and 32 hidden units
-of our decoders; tested) and the weight gradients' per-block partial sums are added in block order. (An earlier
+calls small enough that OpenBLAS runs each on one thread (M·N·K ≤ 262 144: the block size follows from the layer
+shapes, ``block_rows``) and the weight gradients' per-block partial sums are added in block order. (An earlier
 per-sample kernel, the hidden vector in a scratch array, ran at 0.37x this speed.) The plane decoders' kernel, three
 layers with biases, is ``fields.kernels.mlp3``.
 """
@@ -20,9 +20,21 @@ from numba import njit, prange
 
 from inrslam.fields.kernels.function import cpu_floats, second_order_active
 
-#: Samples per block of the parallel loops (fixed, so that the weight gradients sum in the same order on any
-#: number of threads).
+#: Samples per block of the parallel loops at most (`block_rows`: fixed by the layer shapes, so that the weight
+#: gradients sum in the same order on any number of threads).
 BLOCK = 1024
+
+#: OpenBLAS runs a matrix product M x K by K x N on one thread when M·N·K is at most this (its SMP threshold,
+#: 65536 x GEMM_MULTITHREAD_THRESHOLD 4); a larger product inside numba's parallel loop would start OpenBLAS's own
+#: threads there (oversubscription, and results that depend on the thread count).
+BLAS_SINGLE_THREAD_MNK = 262144
+
+
+def block_rows(widest: int) -> int:
+    """Samples per block for a decoder whose widest layer has `widest` = in x out weights: every block product
+    (block x in by in x out, and the weight gradients' in x block by block x out) stays at OpenBLAS's single-thread
+    size. Depends on the shapes only, never on the thread count. E.g. 7 -> 32 -> 3: 1024; 32 -> 32: 256."""
+    return max(1, min(BLOCK, BLAS_SINGLE_THREAD_MNK // max(1, widest)))
 
 #: LLVM may reorder sums and fuse multiply-adds (so the loops vectorise) but not assume finite values: a NaN input
 #: stays NaN in the output, as in the reference.
@@ -49,26 +61,26 @@ def relu_mask_inplace(h, gh):  # pragma: no cover - numba
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def _forward(x, w1t, w2, out):  # pragma: no cover - numba
-    """x (N, I), w1t (I, H), w2 (O, H) -> out (N, O) = relu(x w1t) w2^T, block by block."""
+def _forward(x, w1t, w2, block, out):  # pragma: no cover - numba
+    """x (N, I), w1t (I, H), w2 (O, H) -> out (N, O) = relu(x w1t) w2^T, `block` samples at a time."""
     n_pts = x.shape[0]
     w2t = np.ascontiguousarray(w2.T)
-    for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        n0 = b * BLOCK
-        n1 = min(n_pts, n0 + BLOCK)
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
         h = np.dot(x[n0:n1], w1t)
         relu_inplace(h)
         out[n0:n1] = np.dot(h, w2t)
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def _backward(x, w1t, w2, gy, need_x, need_w, gx, gw1t_parts, gw2_parts):  # pragma: no cover - numba
+def _backward(x, w1t, w2, gy, block, need_x, need_w, gx, gw1t_parts, gw2_parts):  # pragma: no cover - numba
     """Gradients of out = relu(x w1t) w2^T for the output gradient gy (N, O): gx (N, I) when need_x, and per-block
     weight gradients gw1t_parts (B, I, H), gw2_parts (B, O, H) when need_w (summed over blocks by the caller)."""
     n_pts = x.shape[0]
-    for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        n0 = b * BLOCK
-        n1 = min(n_pts, n0 + BLOCK)
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
         xb = x[n0:n1]
         gyb = gy[n0:n1]
         h = np.dot(xb, w1t)  # (m, H) pre-activation
@@ -79,6 +91,11 @@ def _backward(x, w1t, w2, gy, need_x, need_w, gx, gw1t_parts, gw2_parts):  # pra
         if need_w:
             gw1t_parts[b] = np.dot(xb.T, gh)
             gw2_parts[b] = np.dot(gyb.T, h)
+
+
+def _block(w1t: torch.Tensor, w2: torch.Tensor) -> int:
+    """`block_rows` of a decoder with w1t (I, H) and w2 (O, H)."""
+    return block_rows(max(w1t.shape[0] * w1t.shape[1], w2.shape[0] * w2.shape[1]))
 
 
 def mlp2_torch(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
@@ -96,7 +113,7 @@ class Mlp2Fn(torch.autograd.Function):
         w1t = w1.detach().t().contiguous()
         w2c = w2.detach().contiguous()
         out = np.empty((xc.shape[0], w2c.shape[0]), dtype=w1t.numpy().dtype)
-        _forward(xc.numpy(), w1t.numpy(), w2c.numpy(), out)
+        _forward(xc.numpy(), w1t.numpy(), w2c.numpy(), _block(w1t, w2c), out)
         ctx.save_for_backward(xc, w1t, w2c)
         return torch.from_numpy(out)
 
@@ -109,12 +126,13 @@ class Mlp2Fn(torch.autograd.Function):
         n, n_in = xc.shape
         n_hid, n_out = w1t.shape[1], w2c.shape[0]
         dtype = w1t.numpy().dtype
-        n_blocks = (n + BLOCK - 1) // BLOCK if need_w else 0
+        block = _block(w1t, w2c)
+        n_blocks = (n + block - 1) // block if need_w else 0
         gx = np.empty((n if need_x else 0, n_in), dtype=dtype)
         gw1t = np.zeros((n_blocks, n_in, n_hid), dtype=dtype)
         gw2 = np.zeros((n_blocks, n_out, n_hid), dtype=dtype)
-        _backward(xc.numpy(), w1t.numpy(), w2c.numpy(), gy.detach().to(w1t.dtype).contiguous().numpy(), need_x,
-                  need_w, gx, gw1t, gw2)
+        _backward(xc.numpy(), w1t.numpy(), w2c.numpy(), gy.detach().to(w1t.dtype).contiguous().numpy(), block,
+                  need_x, need_w, gx, gw1t, gw2)
         gx_t = torch.from_numpy(gx) if need_x else None
         gw1_t = torch.from_numpy(gw1t.sum(axis=0)).t().contiguous() if need_w1 else None  # blocks summed in
         gw2_t = torch.from_numpy(gw2.sum(axis=0)) if need_w2 else None  # a fixed order: any thread count

@@ -1,13 +1,13 @@
 """Fused plane decoder ``relu(relu(x W1^T + b1) W2^T + b2) W3^T + b3`` (three layers with biases) for CPU tensors.
 
 The tri-plane and TensoRF fields decode with this MLP (7 -> 32 -> 32 -> 1..3 at `paper` settings). As the grid
-decoder's kernel (``fields.kernels.mlp``) does, the numba kernels cut the samples into blocks of ``BLOCK``, run
-each block's matrix products through BLAS (``np.dot``) and the biases, ReLUs and ReLU masks in place on the block,
-so a block's two (BLOCK, 32) hidden arrays stay in cache; the backward recomputes them instead of storing them. The
-reference is ``mlp3_torch``; ``mlp3`` dispatches. Results do not depend on the thread count: every block is one set
-of BLAS calls no larger than OpenBLAS's single-thread size (M·N·K ≤ 262 144, here 256 · 32 · 32: a larger product
-inside the parallel loop would start OpenBLAS's own threads) and the weight and bias gradients' per-block partial
-sums are added in block order.
+decoder's kernel (``fields.kernels.mlp``) does, the numba kernels cut the samples into blocks (``mlp.block_rows``:
+256 samples for the 32 x 32 middle layer), run each block's matrix products through BLAS (``np.dot``) and the biases,
+ReLUs and ReLU masks in place on the block, so a block's two (block, 32) hidden arrays stay in cache; the backward
+recomputes them instead of storing them. The reference is ``mlp3_torch``; ``mlp3`` dispatches. Results do not depend
+on the thread count: every block is one set of BLAS calls no larger than OpenBLAS's single-thread size (a larger
+product inside the parallel loop would start OpenBLAS's own threads) and the weight and bias gradients' per-block
+partial sums are added in block order.
 """
 
 from __future__ import annotations
@@ -17,11 +17,7 @@ import torch
 from numba import njit, prange
 
 from inrslam.fields.kernels.function import cpu_floats
-from inrslam.fields.kernels.mlp import FASTMATH, relu_inplace, relu_mask_inplace, resolve_backend
-
-#: Samples per block (fixed: the gradients' block sums do not depend on the thread count). 256 keeps the hidden
-#: layer's product (256 x 32 by 32 x 32) and its weight gradient at OpenBLAS's single-thread size.
-BLOCK = 256
+from inrslam.fields.kernels.mlp import FASTMATH, block_rows, relu_inplace, relu_mask_inplace, resolve_backend
 
 
 @njit(inline="always", cache=True, fastmath=FASTMATH)
@@ -55,12 +51,13 @@ def _hidden(xb, w1t, b1, w2t, b2):  # pragma: no cover - numba
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def _forward(x, w1t, b1, w2t, b2, w3t, b3, out):  # pragma: no cover - numba
-    """x (N, I), w1t (I, H1), w2t (H1, H2), w3t (H2, O), biases (H1,), (H2,), (O,) -> out (N, O), block by block."""
+def _forward(x, w1t, b1, w2t, b2, w3t, b3, block, out):  # pragma: no cover - numba
+    """x (N, I), w1t (I, H1), w2t (H1, H2), w3t (H2, O), biases (H1,), (H2,), (O,) -> out (N, O), `block` samples at
+    a time."""
     n_pts = x.shape[0]
-    for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        n0 = b * BLOCK
-        n1 = min(n_pts, n0 + BLOCK)
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
         _a1, a2 = _hidden(x[n0:n1], w1t, b1, w2t, b2)
         y = np.dot(a2, w3t)
         _add_bias(y, b3)
@@ -68,7 +65,7 @@ def _forward(x, w1t, b1, w2t, b2, w3t, b3, out):  # pragma: no cover - numba
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def _backward(x, w1t, b1, w2t, b2, w3t, gy, need_x, need_w, gx, gw1t_p, gb1_p, gw2t_p, gb2_p, gw3t_p,
+def _backward(x, w1t, b1, w2t, b2, w3t, gy, block, need_x, need_w, gx, gw1t_p, gb1_p, gw2t_p, gb2_p, gw3t_p,
               gb3_p):  # pragma: no cover - numba
     """Gradients for the output gradient gy (N, O): gx (N, I) when need_x, and per-block partial weight and bias
     gradients (gw1t_p (B, I, H1), gb1_p (B, H1), ... gb3_p (B, O)) when need_w (summed over blocks by the caller).
@@ -77,9 +74,9 @@ def _backward(x, w1t, b1, w2t, b2, w3t, gy, need_x, need_w, gx, gw1t_p, gb1_p, g
     w3 = np.ascontiguousarray(w3t.T)  # (O, H2)
     w2 = np.ascontiguousarray(w2t.T)  # (H2, H1)
     w1 = np.ascontiguousarray(w1t.T)  # (H1, I)
-    for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        n0 = b * BLOCK
-        n1 = min(n_pts, n0 + BLOCK)
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
         xb = x[n0:n1]
         gyb = gy[n0:n1]
         a1, a2 = _hidden(xb, w1t, b1, w2t, b2)
@@ -96,6 +93,11 @@ def _backward(x, w1t, b1, w2t, b2, w3t, gy, need_x, need_w, gx, gw1t_p, gb1_p, g
             _col_sum(g2, gb2_p[b])
             gw1t_p[b] = np.dot(xb.T, g1)
             _col_sum(g1, gb1_p[b])
+
+
+def block3(*wt: torch.Tensor) -> int:
+    """Samples per block of the three layers' weights (transposed or not: in x out products), `mlp.block_rows`."""
+    return block_rows(max(w.shape[0] * w.shape[1] for w in wt))
 
 
 def mlp3_torch(x: torch.Tensor, w1: torch.Tensor, b1: torch.Tensor, w2: torch.Tensor, b2: torch.Tensor,
@@ -118,7 +120,7 @@ class Mlp3Fn(torch.autograd.Function):
         bs = [b.detach().contiguous() for b in (b1, b2, b3)]
         out = np.empty((xc.shape[0], w3.shape[0]), dtype=wt[0].numpy().dtype)
         _forward(xc.numpy(), wt[0].numpy(), bs[0].numpy(), wt[1].numpy(), bs[1].numpy(), wt[2].numpy(),
-                 bs[2].numpy(), out)
+                 bs[2].numpy(), block3(*wt), out)
         ctx.save_for_backward(xc, *wt, *bs)
         return torch.from_numpy(out)
 
@@ -131,12 +133,13 @@ class Mlp3Fn(torch.autograd.Function):
         dtype = w1t.numpy().dtype
         n, n_in = xc.shape
         h1, h2, n_out = w1t.shape[1], w2t.shape[1], w3t.shape[1]
-        nb = (n + BLOCK - 1) // BLOCK if need_w else 0
+        block = block3(w1t, w2t, w3t)
+        nb = (n + block - 1) // block if need_w else 0
         gx = np.empty((n if need_x else 0, n_in), dtype=dtype)
         parts = [np.zeros(s, dtype=dtype) for s in ((nb, n_in, h1), (nb, h1), (nb, h1, h2), (nb, h2), (nb, h2, n_out),
                                                        (nb, n_out))]
         _backward(xc.numpy(), w1t.numpy(), b1.numpy(), w2t.numpy(), b2.numpy(), w3t.numpy(),
-                  gy.detach().to(w1t.dtype).contiguous().numpy(), need_x, need_w, gx, *parts)
+                  gy.detach().to(w1t.dtype).contiguous().numpy(), block, need_x, need_w, gx, *parts)
         # blocks summed in a fixed order (any thread count); transposed weights back to (out, in)
         sums = [torch.from_numpy(p.sum(axis=0)) for p in parts] if need_w else [None] * 6
         grads = [torch.from_numpy(gx) if need_x else None]

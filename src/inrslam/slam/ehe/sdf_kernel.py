@@ -8,7 +8,7 @@ lookup pass and its backward, the decoder input's concatenation and, in the back
 
 The decoder runs block by block through BLAS as `fields.kernels.mlp` (the block's inputs [f, p̂] gathered into one
 array); the priors' interpolation and, in the backward, their scatter run per sample. Determinism: the decoder's
-weight gradients are summed per block of `mlp.BLOCK` samples, blocks in order, and the priors' gradient is
+weight gradients are summed per block of samples (`mlp.block_rows`), blocks in order, and the priors' gradient is
 scattered in sample order by one thread, so results do not depend on the thread count. (The kernels inline helpers
 of `fields.kernels.trilinear` and `.mlp`: numba's cache does not see edits there, see `fields.kernels.indexing`.)
 """
@@ -20,7 +20,7 @@ import torch
 from numba import njit, prange
 
 from inrslam.fields.kernels.function import cpu_floats, second_order_active, tri_meta
-from inrslam.fields.kernels.mlp import BLOCK, FASTMATH, relu_inplace, relu_mask_inplace
+from inrslam.fields.kernels.mlp import FASTMATH, block_rows, relu_inplace, relu_mask_inplace
 from inrslam.fields.kernels.trilinear import tri_corners, tri_weights
 
 
@@ -56,14 +56,14 @@ def _inputs(x, f, p, n0, n1, xin):
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _forward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, rows, row_off, prior, f, p, w1t, w2,
-             out):  # pragma: no cover - numba
+             block, out):  # pragma: no cover - numba
     """out (N,) = Σ_c w_c prior[r_c] + relu([f, p] w1t) · w2[0]; NaN where x has a NaN coordinate. The decoder runs
     block by block through BLAS, as `mlp._forward`."""
     n_pts = x.shape[0]
     w2t = np.ascontiguousarray(w2.T)
-    for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        n0 = b * BLOCK
-        n1 = min(n_pts, n0 + BLOCK)
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
         xin = np.empty((n1 - n0, w1t.shape[0]), dtype=w1t.dtype)
         _inputs(x, f, p, n0, n1, xin)
         h = np.dot(xin, w1t)
@@ -84,15 +84,15 @@ def _forward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, rows
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _backward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, rows, row_off, f, p, w1t, w2, g,
-              g_prior, g_f, gw1t_parts, gw2_parts):  # pragma: no cover - numba
+              block, g_prior, g_f, gw1t_parts, gw2_parts):  # pragma: no cover - numba
     """For the output gradient g (N,): g_prior (V, 1) (pre-zeroed, += w_c g), g_f (N, F) and per-block weight
     gradients gw1t_parts (B, I, H), gw2_parts (B, 1, H). Samples with a NaN coordinate contribute nothing."""
     n_pts = x.shape[0]
     nf = f.shape[1]
     w1f = np.ascontiguousarray(w1t[:nf])  # (F, H): the rows of the feature inputs
-    for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        n0 = b * BLOCK
-        n1 = min(n_pts, n0 + BLOCK)
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
         m = n1 - n0
         xin = np.empty((m, w1t.shape[0]), dtype=w1t.dtype)
         _inputs(x, f, p, n0, n1, xin)
@@ -122,6 +122,11 @@ def _backward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, row
         g_prior[r7, 0] += w[7] * gn
 
 
+def _block(w1t: torch.Tensor) -> int:
+    """Samples per block of the decoder with w1t (I, H) and one output (`mlp.block_rows`)."""
+    return block_rows(w1t.shape[0] * w1t.shape[1])
+
+
 class EheSdfFn(torch.autograd.Function):
     """s (N,) of world samples x (N, 3), dense-level features f (N, F) and p̂ (N, 3); differentiable in f, the
     prior table (V, 1) and both decoder weights (x and p̂ get no gradient). Once differentiable."""
@@ -136,7 +141,7 @@ class EheSdfFn(torch.autograd.Function):
         meta = tri_meta(voxels.priors.layout)
         out = np.empty(xc.shape[0], dtype=w1t.numpy().dtype)
         _forward(xc.numpy(), origin.numpy(), extent.numpy(), *meta, prior.detach().numpy(), fc.numpy(), pc.numpy(),
-                 w1t.numpy(), w2c.numpy(), out)
+                 w1t.numpy(), w2c.numpy(), _block(w1t), out)
         ctx.save_for_backward(xc, fc, pc, w1t, w2c, origin, extent)
         ctx.meta = meta
         ctx.n_prior = prior.shape[0]
@@ -148,13 +153,14 @@ class EheSdfFn(torch.autograd.Function):
         xc, fc, pc, w1t, w2c, origin, extent = ctx.saved_tensors
         dtype = w1t.numpy().dtype
         n, n_hid = xc.shape[0], w1t.shape[1]
-        n_blocks = (n + BLOCK - 1) // BLOCK
+        block = _block(w1t)
+        n_blocks = (n + block - 1) // block
         g_prior = np.zeros((ctx.n_prior, 1), dtype=dtype)
         g_f = np.empty(fc.shape, dtype=dtype)
         gw1t = np.zeros((n_blocks, w1t.shape[0], n_hid), dtype=dtype)
         gw2 = np.zeros((n_blocks, 1, n_hid), dtype=dtype)
         _backward(xc.numpy(), origin.numpy(), extent.numpy(), *ctx.meta, fc.numpy(), pc.numpy(), w1t.numpy(),
-                  w2c.numpy(), g.detach().to(w1t.dtype).contiguous().numpy(), g_prior, g_f, gw1t, gw2)
+                  w2c.numpy(), g.detach().to(w1t.dtype).contiguous().numpy(), block, g_prior, g_f, gw1t, gw2)
         gw1 = torch.from_numpy(gw1t.sum(axis=0)).t().contiguous()  # blocks summed in a fixed order
         gw2_t = torch.from_numpy(gw2.sum(axis=0))
         return None, torch.from_numpy(g_f), None, torch.from_numpy(g_prior), gw1, gw2_t, None
