@@ -157,7 +157,8 @@ def main() -> None:
                 timeit(dec("torch"), args.reps))
 
     # Plane decoders (tri-plane, TensoRF: 7 -> 32 -> 32 -> 1 and -> 3, with biases): fused mlp3 vs autograd (the
-    # nn.Sequential the fields run with field.decoder_kernel=torch).
+    # nn.Sequential the fields run with field.decoder_kernel=torch), forward + backward to the inputs only (tracking)
+    # and to inputs and weights (as the grid decoders' rows).
     from inrslam.fields.models import plane_decoder, run_plane_decoder
 
     for n in (61_440, 122_880):

@@ -121,6 +121,14 @@ def test_nan_input_gives_nan_output_like_the_reference():
     assert torch.isnan(grads_f[1]).any() == torch.isnan(grads_r[1]).any()
 
 
+def test_a_layer_too_wide_for_single_threaded_blas_runs_the_reference():
+    """A 300 x 1000 layer exceeds OpenBLAS's single-thread size for one sample: auto runs the reference, numba errors."""
+    x, w1, w2, _ = _inputs(20, n_in=300, hidden=1000)
+    assert "Mlp2Fn" not in mlp2(x.requires_grad_(), w1, w2).grad_fn.name()
+    with pytest.raises(ValueError, match="262144 weights"):
+        mlp2(x, w1, w2, backend="numba")
+
+
 def test_bad_input_errors():
     x, w1, w2, _ = _inputs(10)
     with pytest.raises(ValueError, match="do not chain"):

@@ -117,15 +117,20 @@ def test_auto_dispatch():
     assert torch.equal(mlp3(x.half(), *half), mlp3_torch(x.half(), *half))
 
 
-def test_nan_input_gives_nan_output_like_the_reference():
+def test_nan_and_inf_inputs_give_what_the_reference_gives():
+    """A NaN or infinite input (the SLAM loop detects a failed step by its NaN loss) is not silently zeroed by a
+    ReLU: outputs and all seven gradients equal the reference's, NaNs in the same places."""
     x, params, cot = _inputs(40)
     x[3, 2] = float("nan")
+    x[7, 0] = float("inf")
+    x[9, 1] = -float("inf")
     out_r, grads_r = _grads("torch", x, params, cot)
     out_f, grads_f = _grads("numba", x, params, cot)
     assert torch.isnan(out_f[3]).all() and torch.isnan(out_r[3]).all()
     torch.testing.assert_close(out_f, out_r, rtol=1e-5, atol=1e-5, equal_nan=True)
-    for gf, gr in zip(grads_f[1:], grads_r[1:]):
-        assert torch.isnan(gf).any() == torch.isnan(gr).any()
+    for gf, gr in zip(grads_f, grads_r):
+        assert torch.equal(torch.isnan(gf), torch.isnan(gr))
+        torch.testing.assert_close(gf, gr, rtol=1e-4, atol=1e-4, equal_nan=True)
 
 
 def test_bad_input_errors():
@@ -138,6 +143,16 @@ def test_bad_input_errors():
         mlp3(x, *params, backend="cuda")
     with pytest.raises(ValueError, match="float32/float64"):
         mlp3(x.half(), *[p.half() for p in params], backend="numba")
+
+
+def test_a_layer_too_wide_for_single_threaded_blas_runs_the_reference():
+    """One sample's product with a 600 x 600 layer exceeds OpenBLAS's single-thread size whatever the block: auto
+    runs the reference, an explicit numba request says why it cannot."""
+    x, params, _ = _inputs(20, h1=600, h2=600)
+    assert "Mlp3Fn" not in mlp3(x.clone().requires_grad_(), *params).grad_fn.name()
+    torch.testing.assert_close(mlp3(x, *params), mlp3_torch(x, *params))
+    with pytest.raises(ValueError, match="262144 weights"):
+        mlp3(x, *params, backend="numba")
 
 
 def test_module_and_kernel_agree():

@@ -83,7 +83,7 @@ class Field(nn.Module):
         b = np.asarray(bounds, dtype=np.float64)
         self.register_buffer("bounds", torch.tensor(b, dtype=torch.float32))
         self.extent = b[:, 1] - b[:, 0]  # (3,) metres, float64 (resolution rules)
-        self.decoder_backend = KernelChoice(cfg.decoder_kernel).value  # grid decoders (`decode`)
+        self.decoder_backend = KernelChoice(cfg.decoder_kernel).value  # grid and plane decoders (`decode`)
 
     def normalise(self, x: torch.Tensor) -> torch.Tensor:
         """p̂ = (x − b_min)/(b_max − b_min), (N,3), not clamped."""

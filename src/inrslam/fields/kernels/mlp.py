@@ -93,6 +93,12 @@ def _backward(x, w1t, w2, gy, block, need_x, need_w, gx, gw1t_parts, gw2_parts):
             gw2_parts[b] = np.dot(gyb.T, h)
 
 
+def blas_fits(*weights: torch.Tensor) -> bool:
+    """Whether one sample's product with every layer (in x out weights) is within OpenBLAS's single-thread size, so
+    that some block size keeps every product there (`block_rows`); a larger layer runs the reference."""
+    return max(w.shape[0] * w.shape[1] for w in weights) <= BLAS_SINGLE_THREAD_MNK
+
+
 def _block(w1t: torch.Tensor, w2: torch.Tensor) -> int:
     """`block_rows` of a decoder with w1t (I, H) and w2 (O, H)."""
     return block_rows(max(w1t.shape[0] * w1t.shape[1], w2.shape[0] * w2.shape[1]))
@@ -150,7 +156,7 @@ def mlp2(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, backend: str = "au
     if x.dim() != 2 or w1.dim() != 2 or w2.dim() != 2 or x.shape[1] != w1.shape[1] or w2.shape[1] != w1.shape[0]:
         raise ValueError(f"mlp2: shapes x {tuple(x.shape)}, w1 {tuple(w1.shape)}, w2 {tuple(w2.shape)} do not chain "
                          "(expected (N, I), (H, I), (O, H))")
-    backend = resolve_backend(backend, cpu_floats(x, w1, w2))
+    backend = resolve_backend(backend, cpu_floats(x, w1, w2) and blas_fits(w1, w2))
     if backend == "torch":
         return mlp2_torch(x, w1, w2)
     return Mlp2Fn.apply(x, w1, w2)
@@ -164,6 +170,6 @@ def resolve_backend(backend: str, fusable: bool) -> str:
     if backend == "auto":
         return "numba" if fusable else "torch"
     if backend == "numba" and not fusable:
-        raise ValueError("decoder kernel 'numba' needs CPU float32/float64 tensors of one dtype; use 'auto' or "
-                         "'torch' on other devices")
+        raise ValueError("decoder kernel 'numba' needs CPU float32/float64 tensors of one dtype and layers of at "
+                         f"most {BLAS_SINGLE_THREAD_MNK} weights; use 'auto' or 'torch' otherwise")
     return backend

@@ -17,7 +17,14 @@ import torch
 from numba import njit, prange
 
 from inrslam.fields.kernels.function import cpu_floats
-from inrslam.fields.kernels.mlp import FASTMATH, block_rows, relu_inplace, relu_mask_inplace, resolve_backend
+from inrslam.fields.kernels.mlp import (
+    FASTMATH,
+    blas_fits,
+    block_rows,
+    relu_inplace,
+    relu_mask_inplace,
+    resolve_backend,
+)
 
 
 @njit(inline="always", cache=True, fastmath=FASTMATH)
@@ -164,6 +171,6 @@ def mlp3(x: torch.Tensor, w1: torch.Tensor, b1: torch.Tensor, w2: torch.Tensor, 
         raise ValueError(f"mlp3: shapes x {tuple(x.shape)}, weights {[tuple(w.shape) for w in ws]}, biases "
                          f"{[tuple(b.shape) for b in bs]} do not chain (expected (N, I), (H1, I), (H2, H1), (O, H2) "
                          "and (H1,), (H2,), (O,))")
-    if resolve_backend(backend, cpu_floats(x, *ws, *bs)) == "torch":
+    if resolve_backend(backend, cpu_floats(x, *ws, *bs) and blas_fits(*ws)) == "torch":
         return mlp3_torch(x, w1, b1, w2, b2, w3, b3)
     return Mlp3Fn.apply(x, w1, b1, w2, b2, w3, b3)

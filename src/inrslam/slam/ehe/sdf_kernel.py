@@ -20,7 +20,7 @@ import torch
 from numba import njit, prange
 
 from inrslam.fields.kernels.function import cpu_floats, second_order_active, tri_meta
-from inrslam.fields.kernels.mlp import FASTMATH, block_rows, relu_inplace, relu_mask_inplace
+from inrslam.fields.kernels.mlp import FASTMATH, blas_fits, block_rows, relu_inplace, relu_mask_inplace
 from inrslam.fields.kernels.trilinear import tri_corners, tri_weights
 
 
@@ -167,8 +167,10 @@ class EheSdfFn(torch.autograd.Function):
 
 
 def fusable(x: torch.Tensor, f: torch.Tensor, prior: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> bool:
-    """True where `ehe_sdf` can run: CPU float32/float64 tensors of one dtype, a one-output decoder, first-order."""
-    return cpu_floats(x, f, prior, w1, w2) and w2.shape[0] == 1 and not second_order_active()
+    """True where `ehe_sdf` can run: CPU float32/float64 tensors of one dtype, a one-output decoder whose hidden
+    layer fits OpenBLAS's single-thread size (`mlp.blas_fits`), first-order."""
+    return (cpu_floats(x, f, prior, w1, w2) and blas_fits(w1) and w2.shape[0] == 1
+            and not second_order_active())
 
 
 def ehe_sdf(x: torch.Tensor, f: torch.Tensor, p: torch.Tensor, voxels, w1: torch.Tensor,
