@@ -121,6 +121,7 @@ def _touch(slot, out_rows, out_vals, cb, cnt, r, wt, g, n, e):
         out_vals[cb + s, f] += wt * g[n, e, f]
     return cnt
 
+
 @njit(parallel=True, cache=True, fastmath=False)
 def interp_forward(xn, table, ndim, axes, res, scale, offset, stride, hashed, rows, row_off, out):
     """out[n,e,:] = Σ_c w_c(n,e) · T[row_c(n,e), :]   (out pre-zeroed, (N,E,F))."""

@@ -36,6 +36,7 @@ def block_rows(widest: int) -> int:
     size. Depends on the shapes only, never on the thread count. E.g. 7 -> 32 -> 3: 1024; 32 -> 32: 256."""
     return max(1, min(BLOCK, BLAS_SINGLE_THREAD_MNK // max(1, widest)))
 
+
 #: LLVM may reorder sums and fuse multiply-adds (so the loops vectorise) but not assume finite values: a NaN input
 #: stays NaN in the output, as in the reference.
 FASTMATH = {"reassoc", "contract", "arcp", "nsz"}
