@@ -119,10 +119,10 @@ def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_diff: float = 0.02, offset
         used_a[i] = used_b[j] = True
         out_a.append(i)
         out_b.append(order_b[j])
-    out_a = np.asarray(out_a, dtype=np.int64)  # type: ignore[assignment]  # the lists become index arrays
-    out_b = np.asarray(out_b, dtype=np.int64)  # type: ignore[assignment]
-    srt = np.argsort(out_a, kind="stable")
-    return out_a[srt], out_b[srt]
+    idx_a = np.asarray(out_a, dtype=np.int64)
+    idx_b = np.asarray(out_b, dtype=np.int64)
+    srt = np.argsort(idx_a, kind="stable")
+    return idx_a[srt], idx_b[srt]
 
 
 def associate_indices(idx_a: Sequence[int], idx_b: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
