@@ -91,10 +91,13 @@ def test_weight_gradient_independent_of_threads(n_in, hidden):
 def test_block_rows_keeps_blas_single_threaded():
     """Samples per block: the most that keeps block x widest layer at OpenBLAS's single-thread size, at most BLOCK,
     at least 1 (7 -> 32: 1024; 32 x 32: 256; 35 x 64: 117)."""
-    assert block_rows(7 * 32) == BLOCK == 1024
-    assert block_rows(32 * 32) == 256
-    assert block_rows(35 * 64) == 117 and 117 * 35 * 64 <= BLAS_SINGLE_THREAD_MNK < 118 * 35 * 64
-    assert block_rows(10**7) == 1 and block_rows(0) == BLOCK
+    def w(a, b):
+        return torch.empty(a, b)
+
+    assert block_rows(w(7, 32), w(3, 32)) == BLOCK == 1024
+    assert block_rows(w(7, 32), w(32, 32), w(32, 1)) == 256
+    assert block_rows(w(35, 64), w(64, 1)) == 117 and 117 * 35 * 64 <= BLAS_SINGLE_THREAD_MNK < 118 * 35 * 64
+    assert block_rows(w(4000, 2500)) == 1 and block_rows(w(0, 5)) == BLOCK
 
 
 def test_auto_dispatch():
@@ -122,7 +125,8 @@ def test_nan_input_gives_nan_output_like_the_reference():
 
 
 def test_a_layer_too_wide_for_single_threaded_blas_runs_the_reference():
-    """A 300 x 1000 layer exceeds OpenBLAS's single-thread size for one sample: auto runs the reference, numba errors."""
+    """A 300 x 1000 layer exceeds OpenBLAS's single-thread size for one sample: auto runs the reference, numba
+    errors."""
     x, w1, w2, _ = _inputs(20, n_in=300, hidden=1000)
     assert "Mlp2Fn" not in mlp2(x.requires_grad_(), w1, w2).grad_fn.name()
     with pytest.raises(ValueError, match="262144 weights"):

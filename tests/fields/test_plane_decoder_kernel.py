@@ -6,12 +6,12 @@ import pytest
 import torch
 
 from inrslam.fields import kernels
-from inrslam.fields.kernels.mlp import BLAS_SINGLE_THREAD_MNK
-from inrslam.fields.kernels.mlp3 import Mlp3Fn, block3, mlp3, mlp3_torch
+from inrslam.fields.kernels.mlp import BLAS_SINGLE_THREAD_MNK, block_rows
+from inrslam.fields.kernels.mlp3 import Mlp3Fn, mlp3, mlp3_torch
 from inrslam.fields.kernels.threads import thread_scope
 from inrslam.fields.models import plane_decoder, run_plane_decoder
 
-BLOCK = block3(torch.empty(7, 32), torch.empty(32, 32), torch.empty(32, 3))  # the default plane decoder's: 256
+BLOCK = block_rows(torch.empty(7, 32), torch.empty(32, 32), torch.empty(32, 3))  # the default plane decoder's: 256
 
 
 def _inputs(n, n_in=7, h1=32, h2=32, n_out=3, dtype=torch.float32, seed=None):
@@ -87,7 +87,7 @@ def test_gradients_independent_of_threads(n_in, hidden):
     """Any thread count gives the same bits, also for a wider decoder (35 inputs, 64 hidden units: 64 x 64 middle
     layer, so a smaller block keeps each product at OpenBLAS's single-thread size)."""
     x, params, cot = _inputs(9 * BLOCK + 11, n_in=n_in, h1=hidden, h2=hidden)
-    block = block3(*params[::2])
+    block = block_rows(*params[::2])
     assert block * max(w.shape[0] * w.shape[1] for w in params[::2]) <= BLAS_SINGLE_THREAD_MNK
     assert block == (256 if hidden == 32 else 64)
     runs = []

@@ -145,10 +145,10 @@ def render_losses(field: Callable[[Tensor], Any], renderer, origins: Tensor, dir
     sdf_terms = bool(getattr(renderer, "sdf_based", True))
     sdf, rgb, weights, normals = render_samples(field, renderer, origins, dirs, z, truncation)
     args = (weights, rgb, z, sdf, target_rgb, target_depth)
-    kernel = KernelChoice(cfg.kernel)
-    if kernel is KernelChoice.NUMBA and not cpu_floats(*args):
+    kernel, fusable = KernelChoice(cfg.kernel), cpu_floats(*args)
+    if kernel is KernelChoice.NUMBA and not fusable:
         raise ValueError("loss.kernel 'numba' needs CPU float32/float64 tensors of one dtype; use 'auto' or 'torch'")
-    if kernel is KernelChoice.TORCH or not cpu_floats(*args) or z.requires_grad or target_rgb.requires_grad \
+    if kernel is KernelChoice.TORCH or not fusable or z.requires_grad or target_rgb.requires_grad \
             or target_depth.requires_grad:  # the kernel differentiates weights, colours and SDF only
         out = RenderOutput(*composite(weights, rgb, z), weights, sdf, z, normals)
         return compute_losses(out, target_rgb, target_depth, cfg, truncation, sdf_terms, behind), out

@@ -30,11 +30,16 @@ BLOCK = 1024
 BLAS_SINGLE_THREAD_MNK = 262144
 
 
-def block_rows(widest: int) -> int:
-    """Samples per block for a decoder whose widest layer has `widest` = in x out weights: every block product
-    (block x in by in x out, and the weight gradients' in x block by block x out) stays at OpenBLAS's single-thread
-    size. Depends on the shapes only, never on the thread count. E.g. 7 -> 32 -> 3: 1024; 32 -> 32: 256."""
-    return max(1, min(BLOCK, BLAS_SINGLE_THREAD_MNK // max(1, widest)))
+def widest(*weights) -> int:
+    """The most in x out weights of any of the layers' 2-D weight arrays (tensors or arrays, transposed or not)."""
+    return max((w.shape[0] * w.shape[1] for w in weights), default=0)
+
+
+def block_rows(*weights) -> int:
+    """Samples per block for a decoder with these layer weights: every block product (block x in by in x out, and
+    the weight gradients' in x block by block x out) stays at OpenBLAS's single-thread size. Depends on the shapes
+    only, never on the thread count. E.g. 7 -> 32 -> 3: 1024; a 32 x 32 layer: 256."""
+    return max(1, min(BLOCK, BLAS_SINGLE_THREAD_MNK // max(1, widest(*weights))))
 
 
 #: LLVM may reorder sums and fuse multiply-adds (so the loops vectorise) but not assume finite values: a NaN input
@@ -94,15 +99,10 @@ def _backward(x, w1t, w2, gy, block, need_x, need_w, gx, gw1t_parts, gw2_parts):
             gw2_parts[b] = np.dot(gyb.T, h)
 
 
-def blas_fits(*weights: torch.Tensor) -> bool:
+def blas_fits(*weights) -> bool:
     """Whether one sample's product with every layer (in x out weights) is within OpenBLAS's single-thread size, so
     that some block size keeps every product there (`block_rows`); a larger layer runs the reference."""
-    return max(w.shape[0] * w.shape[1] for w in weights) <= BLAS_SINGLE_THREAD_MNK
-
-
-def _block(w1t: torch.Tensor, w2: torch.Tensor) -> int:
-    """`block_rows` of a decoder with w1t (I, H) and w2 (O, H)."""
-    return block_rows(max(w1t.shape[0] * w1t.shape[1], w2.shape[0] * w2.shape[1]))
+    return widest(*weights) <= BLAS_SINGLE_THREAD_MNK
 
 
 def mlp2_torch(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
@@ -120,7 +120,7 @@ class Mlp2Fn(torch.autograd.Function):
         w1t = w1.detach().t().contiguous()
         w2c = w2.detach().contiguous()
         out = np.empty((xc.shape[0], w2c.shape[0]), dtype=w1t.numpy().dtype)
-        _forward(xc.numpy(), w1t.numpy(), w2c.numpy(), _block(w1t, w2c), out)
+        _forward(xc.numpy(), w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), out)
         ctx.save_for_backward(xc, w1t, w2c)
         return torch.from_numpy(out)
 
@@ -133,7 +133,7 @@ class Mlp2Fn(torch.autograd.Function):
         n, n_in = xc.shape
         n_hid, n_out = w1t.shape[1], w2c.shape[0]
         dtype = w1t.numpy().dtype
-        block = _block(w1t, w2c)
+        block = block_rows(w1t, w2c)
         n_blocks = (n + block - 1) // block if need_w else 0
         gx = np.empty((n if need_x else 0, n_in), dtype=dtype)
         gw1t = np.zeros((n_blocks, n_in, n_hid), dtype=dtype)
@@ -152,8 +152,6 @@ def mlp2(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, backend: str = "au
     backend: "numba" (fused, CPU float32/float64 tensors, once differentiable), "torch" (reference) or "auto"
     (numba on CPU tensors of those dtypes). Inside ``kernels.second_order()`` (a ``create_graph`` backward may
     follow) both run the reference."""
-    if backend not in ("auto", "torch", "numba"):
-        raise ValueError(f"unknown decoder kernel {backend!r} (choices: auto, torch, numba)")
     if x.dim() != 2 or w1.dim() != 2 or w2.dim() != 2 or x.shape[1] != w1.shape[1] or w2.shape[1] != w1.shape[0]:
         raise ValueError(f"mlp2: shapes x {tuple(x.shape)}, w1 {tuple(w1.shape)}, w2 {tuple(w2.shape)} do not chain "
                          "(expected (N, I), (H, I), (O, H))")
@@ -165,7 +163,10 @@ def mlp2(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, backend: str = "au
 
 def resolve_backend(backend: str, fusable: bool) -> str:
     """The backend that runs: the reference wherever a second-order backward may follow (inside
-    ``kernels.second_order()``: NeuS normals), else numba for "auto" where fusable; an impossible "numba" errors."""
+    ``kernels.second_order()``: NeuS normals), else numba for "auto" where fusable; an unknown name or an impossible
+    "numba" errors."""
+    if backend not in ("auto", "torch", "numba"):
+        raise ValueError(f"unknown decoder kernel {backend!r} (choices: auto, torch, numba)")
     if second_order_active():
         return "torch"
     if backend == "auto":

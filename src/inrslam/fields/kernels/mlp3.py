@@ -102,11 +102,6 @@ def _backward(x, w1t, b1, w2t, b2, w3t, gy, block, need_x, need_w, gx, gw1t_p, g
             _col_sum(g1, gb1_p[b])
 
 
-def block3(*wt: torch.Tensor) -> int:
-    """Samples per block of the three layers' weights (transposed or not: in x out products), `mlp.block_rows`."""
-    return block_rows(max(w.shape[0] * w.shape[1] for w in wt))
-
-
 def mlp3_torch(x: torch.Tensor, w1: torch.Tensor, b1: torch.Tensor, w2: torch.Tensor, b2: torch.Tensor,
                w3: torch.Tensor, b3: torch.Tensor) -> torch.Tensor:
     """Reference: x (N, I), w1 (H1, I), w2 (H2, H1), w3 (O, H2), biases (H1,), (H2,), (O,) -> (N, O) (any device,
@@ -127,7 +122,7 @@ class Mlp3Fn(torch.autograd.Function):
         bs = [b.detach().contiguous() for b in (b1, b2, b3)]
         out = np.empty((xc.shape[0], w3.shape[0]), dtype=wt[0].numpy().dtype)
         _forward(xc.numpy(), wt[0].numpy(), bs[0].numpy(), wt[1].numpy(), bs[1].numpy(), wt[2].numpy(),
-                 bs[2].numpy(), block3(*wt), out)
+                 bs[2].numpy(), block_rows(*wt), out)
         ctx.save_for_backward(xc, *wt, *bs)
         return torch.from_numpy(out)
 
@@ -140,7 +135,7 @@ class Mlp3Fn(torch.autograd.Function):
         dtype = w1t.numpy().dtype
         n, n_in = xc.shape
         h1, h2, n_out = w1t.shape[1], w2t.shape[1], w3t.shape[1]
-        block = block3(w1t, w2t, w3t)
+        block = block_rows(w1t, w2t, w3t)
         nb = (n + block - 1) // block if need_w else 0
         gx = np.empty((n if need_x else 0, n_in), dtype=dtype)
         parts = [np.zeros(s, dtype=dtype) for s in ((nb, n_in, h1), (nb, h1), (nb, h1, h2), (nb, h2), (nb, h2, n_out),
@@ -162,8 +157,6 @@ def mlp3(x: torch.Tensor, w1: torch.Tensor, b1: torch.Tensor, w2: torch.Tensor, 
 
     backend: "numba" (fused, CPU float32/float64 tensors of one dtype, once differentiable), "torch" (reference)
     or "auto" (numba where it can run). Inside ``kernels.second_order()`` both run the reference."""
-    if backend not in ("auto", "torch", "numba"):
-        raise ValueError(f"unknown decoder kernel {backend!r} (choices: auto, torch, numba)")
     ws, bs = (w1, w2, w3), (b1, b2, b3)
     if (x.dim() != 2 or any(w.dim() != 2 for w in ws) or any(b.dim() != 1 for b in bs)
             or x.shape[1] != w1.shape[1] or w2.shape[1] != w1.shape[0] or w3.shape[1] != w2.shape[0]

@@ -122,11 +122,6 @@ def _backward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, row
         g_prior[r7, 0] += w[7] * gn
 
 
-def _block(w1t: torch.Tensor) -> int:
-    """Samples per block of the decoder with w1t (I, H) and one output (`mlp.block_rows`)."""
-    return block_rows(w1t.shape[0] * w1t.shape[1])
-
-
 class EheSdfFn(torch.autograd.Function):
     """s (N,) of world samples x (N, 3), dense-level features f (N, F) and p̂ (N, 3); differentiable in f, the
     prior table (V, 1) and both decoder weights (x and p̂ get no gradient). Once differentiable."""
@@ -141,7 +136,7 @@ class EheSdfFn(torch.autograd.Function):
         meta = tri_meta(voxels.priors.layout)
         out = np.empty(xc.shape[0], dtype=w1t.numpy().dtype)
         _forward(xc.numpy(), origin.numpy(), extent.numpy(), *meta, prior.detach().numpy(), fc.numpy(), pc.numpy(),
-                 w1t.numpy(), w2c.numpy(), _block(w1t), out)
+                 w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), out)
         ctx.save_for_backward(xc, fc, pc, w1t, w2c, origin, extent)
         ctx.meta = meta
         ctx.n_prior = prior.shape[0]
@@ -153,7 +148,7 @@ class EheSdfFn(torch.autograd.Function):
         xc, fc, pc, w1t, w2c, origin, extent = ctx.saved_tensors
         dtype = w1t.numpy().dtype
         n, n_hid = xc.shape[0], w1t.shape[1]
-        block = _block(w1t)
+        block = block_rows(w1t, w2c)
         n_blocks = (n + block - 1) // block
         g_prior = np.zeros((ctx.n_prior, 1), dtype=dtype)
         g_f = np.empty(fc.shape, dtype=dtype)
