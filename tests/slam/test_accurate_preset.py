@@ -15,8 +15,10 @@ from inrslam.io.trajectory import read_tum  # noqa: E402
 from inrslam.runner import resume_slam, run_slam  # noqa: E402
 
 FRAMES = 8
+# a coarse map (6 cm finest cells) and small batches: these tests check which stages run, not the map's quality
+LIGHT_MAP = ["slam.init_pixels=512", "field.block_fine=0.06", "field.block_coarse=0.24"]
 SMALL = [f"data.max_frames={FRAMES}", "data.builtin.width=96", "data.builtin.height=72", "slam.init_iters=60",
-         "slam.track_pixels=256", "slam.map_iters=5", "slam.map_pixels=512", "slam.checkpoint_every=2",
+         *LIGHT_MAP, "slam.track_pixels=256", "slam.map_iters=5", "slam.map_pixels=512", "slam.checkpoint_every=2",
          "slam.gicp.pixel_stride=1", "slam.sdf_track.points=2048", "eval.enabled=false", "mesh.enabled=false",
          "output.tensorboard=false", "seed=1"]
 # every piece on, on every frame (not only when GICP fails)
@@ -127,7 +129,7 @@ def test_fast_preset_tracks_like_accurate_with_a_lighter_map(tmp_path_factory):
     out = tmp_path_factory.mktemp("fast") / "run"
     run_slam(load_config(preset="fast", overrides=["data.max_frames=12", "data.builtin.width=96",
                                                    "data.builtin.height=72", "eval.enabled=false",
-                                                   "mesh.enabled=false", "output.tensorboard=false"]), out)
+                                                   "mesh.enabled=false", "output.tensorboard=false", *LIGHT_MAP]), out)
     recs = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [r["frame"] for r in recs if r["type"] == "map"] == [10]
     assert all("gicp_fitness" in r for r in recs if r["type"] == "track")

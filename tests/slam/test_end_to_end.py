@@ -18,7 +18,9 @@ from inrslam.io.trajectory import read_tum
 from inrslam.runner import resume_slam, run_slam
 
 FRAMES = 10
-OVERRIDES = [f"data.max_frames={FRAMES}", "slam.checkpoint_every=2", "output.tensorboard=false", "seed=3"]
+# 512 rays per initialisation step instead of 2048: 4-5 s less per run, ATE 1.4 instead of 1.1 cm (bound: 2 cm)
+OVERRIDES = [f"data.max_frames={FRAMES}", "slam.checkpoint_every=2", "output.tensorboard=false", "seed=3",
+             "slam.init_pixels=512"]
 
 
 def quick_cfg(extra=()):

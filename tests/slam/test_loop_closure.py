@@ -309,9 +309,9 @@ def test_bad_loop_settings_are_one_line_config_errors(override, expected):
 
 LOOP_RUN = ["data.builtin.frames=120", "data.builtin.motion_scale=2.67", "data.builtin.width=96",
             "data.builtin.height=72", "slam.init_iters=20", "slam.map_every=10", "slam.map_iters=3",
-            "slam.map_pixels=512", "slam.gicp.pixel_stride=1", "slam.loop.refit_iters=5",
+            "slam.map_pixels=512", "slam.gicp.pixel_stride=2", "slam.loop.refit_iters=5",
             "slam.loop.refit_pixels=512", "slam.checkpoint_every=0", "eval.enabled=false", "mesh.enabled=false",
-            "output.tensorboard=false"]
+            "output.tensorboard=false", "slam.init_pixels=512", "field.block_fine=0.06", "field.block_coarse=0.24"]
 
 
 @pytest.fixture(scope="module")

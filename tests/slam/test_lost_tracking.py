@@ -12,7 +12,8 @@ from inrslam.datasets import open_dataset
 from inrslam.errors import TrackingLost
 from inrslam.slam.system import SlamSystem
 
-BASE = ["data.max_frames=4", "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false"]
+BASE = ["data.max_frames=4", "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false",
+        "slam.init_pixels=512"]
 
 
 @functools.cache
