@@ -383,11 +383,9 @@ def test_unusable_run_arguments_are_one_line_errors(tmp_path, case):
     ("data.builtin.width=1", "'data.builtin.width'"),
 ])
 def test_bad_numeric_keys_fail_at_load_time(tmp_path, override, needle):
-    t0 = time.perf_counter()
     proc = cli("run", "--out", str(tmp_path / "o"), *override.split(), "--quiet", cwd=tmp_path)
     assert_one_line_error(proc, EXIT_ERROR, needle)
-    assert not (tmp_path / "o").exists()  # nothing started
-    assert time.perf_counter() - t0 < 60  # refused at load, not after SLAM (a generous bound for a busy machine)
+    assert not (tmp_path / "o").exists()  # refused at load: no run folder was ever made
 
 
 @pytest.mark.parametrize("intrinsics,needle", [

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -117,11 +116,9 @@ def test_bad_input_is_a_one_line_error(args, match):
         mesh_thumbnail(*square(), up=(0, 0, 0))
 
 
-def test_a_200k_triangle_mesh_takes_well_under_two_seconds(make_plane):
+def test_a_200k_triangle_mesh_is_drawn_whole(make_plane):
+    # its time is measured by benchmarks/bench_thumbnail.py (tests never time anything)
     plane = make_plane(4.0, 317)  # 201,000 triangles
     assert len(plane.faces) > 200_000
-    t0 = time.perf_counter()
     img = mesh_thumbnail(plane.vertices, plane.faces, up=(0, 0, 1))
-    took = time.perf_counter() - t0
     assert (img != BACKGROUND).any(axis=2).mean() > 0.3  # the plane fills much of the picture, without holes
-    assert took < 2.0, f"{took:.2f} s"

@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from inrslam.cli import main
 from inrslam.config import load_config
@@ -113,6 +114,29 @@ def test_the_ehe_loop_maps_noisy_depth_after_the_bilateral_filter_and_clean_dept
                 assert np.abs(got - true)[v].mean() < 0.8 * np.abs(raw - true)[v].mean()  # the noise is reduced
             else:  # noise-free depth below the gate, or the key off: the measured depth
                 assert np.array_equal(got, raw)
+
+
+@pytest.mark.parametrize("stride", [1, 3])
+def test_frame_points_back_project_every_valid_strided_pixel(stride):
+    from inrslam.geometry.camera import pixel_directions
+    from inrslam.slam.frame_tensors import FrameTensors
+
+    cfg = ehe_cfg([f"ehe.point_stride={stride}"])
+    ds = open_dataset(cfg.data)
+    system = system_class(cfg)(cfg, ds)
+    for i in (0, 3):  # the second frame reuses the cached pixel grid
+        frame = ds[i]
+        ft = FrameTensors(frame, torch.device("cpu"))
+        c2w = torch.as_tensor(frame.c2w, dtype=torch.float32)
+        got = system._frame_points(ft, c2w)
+        H, W = frame.depth.shape
+        v, u = np.mgrid[0:H:stride, 0:W:stride]
+        z = frame.depth[v, u]
+        ok = (z > cfg.ehe.depth_min) & (z < cfg.ehe.depth_max)
+        u, v, z = torch.from_numpy(u[ok]), torch.from_numpy(v[ok]), torch.from_numpy(z[ok]).float()
+        cam = pixel_directions(frame.intrinsics, u.float(), v.float()) * z[:, None]
+        assert torch.equal(got, cam @ c2w[:3, :3].T + c2w[:3, 3])  # row-major pixel order, same rounding
+        assert got.shape[0] > 0.5 * H * W / stride**2
 
 
 def test_ehe_config_errors_are_one_line(capsys, tmp_path):

@@ -25,12 +25,14 @@ def test_optimise_ends_early_on_the_rule_and_runs_all_iterations_without_it():
     class Model:
         def loss(self, *args):
             v = next(losses)
-            return {"total": p * 0 + v, "mse": torch.tensor(0.01), "depth_l1": torch.tensor(0.0)}
+            return {"total": p + v, "mse": torch.tensor(0.01), "depth_l1": torch.tensor(0.0)}
 
-    opt = {"field": torch.optim.SGD([p], lr=0.1)}
+    opt = {"field": torch.optim.SGD([p], lr=1e-3)}  # each step moves p (and the losses) by -0.001
     batch = lambda: (None, None, None, None)  # noqa: E731
     res = optimise(Model(), opt, batch, iters=6, early_stop=True, generator=torch.Generator())
-    assert isinstance(res, MapResult) and res.iters == 4 and abs(res.psnr[0] - 20.0) < 1e-5
+    # the 4th loss (3.8) ends mapping and, as in the original, takes no step: 3 steps
+    assert isinstance(res, MapResult) and res.iters == 3 and abs(res.psnr[0] - 20.0) < 1e-5
+    assert abs(float(p.detach()) + 0.003) < 1e-7
     losses = iter([4.0, 3.0, 3.9, 3.8, 1.0, 1.0])
     assert optimise(Model(), opt, batch, iters=6, early_stop=False, generator=torch.Generator()).iters == 6
 

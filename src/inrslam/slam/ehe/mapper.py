@@ -91,7 +91,8 @@ class MapResult:
 
 def optimise(model, optimizers: dict, batch: RayBatch, iters: int, early_stop: bool,
              generator: torch.Generator) -> MapResult:
-    """Up to `iters` Adam steps of `model.loss` on fresh ray batches; non-finite losses take no step."""
+    """Up to `iters` Adam steps of `model.loss` on fresh ray batches; non-finite losses take no step, and with
+    `early_stop` the loss that ends mapping (`EarlyStop`) takes none either (its forward is the only one spent)."""
     res = MapResult()
     stop = EarlyStop()
     for _ in range(iters):
@@ -104,12 +105,12 @@ def optimise(model, optimizers: dict, batch: RayBatch, iters: int, early_stop: b
         if not math.isfinite(value) or not total.requires_grad:
             res.skipped += 1
             continue
+        if early_stop and stop.update(value):
+            break  # as the original: the loss that ends mapping takes no step
         total.backward()
         for opt in optimizers.values():
             opt.step()
         res.losses.append(value)
         res.psnr.append(float(psnr_from_mse(float(losses["mse"]))) if float(losses["mse"]) > 0 else float("nan"))
         res.depth_l1.append(float(losses["depth_l1"]))
-        if early_stop and stop.update(value):
-            break
     return res

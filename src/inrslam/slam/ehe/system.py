@@ -13,7 +13,8 @@ import trimesh
 
 from inrslam.data.frame import Frame, RGBDDataset
 from inrslam.errors import ConfigError
-from inrslam.geometry.camera import world_rays
+from inrslam.geometry.camera import pixel_directions, world_rays
+from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.slam.ehe.config import EheConfig
 from inrslam.slam.ehe.field import EheField
 from inrslam.slam.ehe.mapper import MapResult, needs_keyframe, optimise, select_window, voxel_overlap
@@ -47,6 +48,7 @@ class EheSystem(SlamSystem):
                                torch.Generator().manual_seed(cfg.seed), self.n_frames, self.device)
         assert isinstance(state, EheState)
         self.state = state
+        self._grids: dict[tuple[Intrinsics, int], tuple[torch.Tensor, torch.Tensor]] = {}  # `_point_grid`
 
     def _make_model(self) -> EheModel:  # type: ignore[override]
         return EheModel(self.cfg, self.bounds)
@@ -88,14 +90,24 @@ class EheSystem(SlamSystem):
     def _frame_points(self, ft: FrameTensors, c2w: torch.Tensor) -> torch.Tensor:
         """World points (N, 3) of the frame's valid depth (every `point_stride`-th row / column)."""
         c = self.cfg.ehe
-        H, W = ft.intr.height, ft.intr.width
-        v, u = torch.meshgrid(torch.arange(0, H, c.point_stride, device=self.device),
-                              torch.arange(0, W, c.point_stride, device=self.device), indexing="ij")
-        idx = (v * W + u).reshape(-1)
-        idx = idx[(ft.depth[idx] > c.depth_min) & (ft.depth[idx] < c.depth_max)]
-        dirs, _, depth = ft.rays(idx)
-        o, d = world_rays(c2w, dirs * depth[:, None])
+        idx, dirs = self._point_grid(ft.intr, c.point_stride)
+        depth = ft.depth[idx]
+        ok = (depth > c.depth_min) & (depth < c.depth_max)
+        o, d = world_rays(c2w, dirs[ok] * depth[ok][:, None])
         return o + d
+
+    def _point_grid(self, intr: Intrinsics, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(flat pixel indices (M,), camera directions (M, 3) with z = 1) of every `stride`-th row / column, computed
+        once per camera (a 640 x 480 frame's directions cost more than the rest of its back-projection)."""
+        key = (intr, stride)
+        if key not in self._grids:
+            H, W = intr.height, intr.width
+            v, u = torch.meshgrid(torch.arange(0, H, stride, device=self.device),
+                                  torch.arange(0, W, stride, device=self.device), indexing="ij")
+            idx = (v * W + u).reshape(-1)
+            self._grids[key] = idx, pixel_directions(intr, (idx % W).float(), torch.div(idx, W, rounding_mode="floor")
+                                                     .float())
+        return self._grids[key]
 
     def _map_ehe(self, i: int, ft: FrameTensors, c2w: torch.Tensor, depth: dict) -> None:
         """Allocate, initialise priors and optimise over the keyframe window for frame i; `depth` (which depth
