@@ -39,8 +39,7 @@ SRC = Path(inrslam.__file__).resolve().parents[1]
 TESTS = Path(__file__).resolve().parent
 FRAMES, WIDTH, HEIGHT = 6, 96, 72
 RUN_ARGS = ["--preset", "quick", "--quiet", "threads=1", "seed=3", "slam.init_iters=30", "slam.init_pixels=512",
-            "slam.checkpoint_every=1",
-            "output.tensorboard=false", "eval.heldout_every=0", "eval.n_samples=2000"]
+            "slam.checkpoint_every=1", "output.tensorboard=false", "eval.heldout_every=0", "eval.n_samples=2000"]
 EXIT_ERROR, EXIT_FAILED_RUNS, EXIT_INTERRUPTED = 2, 1, 130
 
 
