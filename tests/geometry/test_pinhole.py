@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from inrslam.errors import DataError
-from inrslam.geometry.camera import pixel_directions
+from inrslam.geometry.camera import grid_directions, pixel_directions
 from inrslam.geometry.intrinsics import Intrinsics, reproject_image
 from inrslam.geometry.pinhole import backproject_np, image_directions_np, pixel_directions_np, project_np
 
@@ -42,6 +42,17 @@ def test_numpy_and_torch_directions_agree():
     assert np.allclose(d_np, d_t)
     grid = image_directions_np(*P, INTR.width, INTR.height)
     assert grid.shape == (64 * 48, 3) and np.allclose(grid[INTR.width + 2], pixel_directions_np(*P, [2], [1])[0])
+
+
+@pytest.mark.parametrize("stride", [1, 3])
+def test_grid_directions_are_every_strided_pixel_row_major(stride):
+    idx, dirs = grid_directions(INTR, stride)
+    grid = image_directions_np(*P, INTR.width, INTR.height)
+    v, u = np.mgrid[0:INTR.height:stride, 0:INTR.width:stride]
+    want = (v * INTR.width + u).reshape(-1)
+    assert idx.dtype == torch.int64 and np.array_equal(idx.numpy(), want)
+    assert dirs.dtype == torch.float32 and np.allclose(dirs.numpy(), grid[want], atol=1e-6)
+    assert np.allclose(dirs[1].numpy(), [(stride - 31.5) / 100, (0 - 23.5) / 120, 1.0])  # pixel (u, v) = (stride, 0)
 
 
 def test_reproject_image_samples_the_source_camera_at_the_scaled_coordinates():

@@ -27,6 +27,16 @@ def pixel_directions(intr: Intrinsics, u: Tensor, v: Tensor) -> Tensor:
     return torch.stack([x, y, torch.ones_like(x)], dim=-1)
 
 
+def grid_directions(intr: Intrinsics, stride: int = 1, device: torch.device | str | None = None
+                    ) -> tuple[Tensor, Tensor]:
+    """Every `stride`-th row and column of the image, row-major: flat pixel indices v·W + u (M,) int64 and their
+    camera-frame directions (M, 3) float32 with z = 1 (`pixel_directions`)."""
+    v, u = torch.meshgrid(torch.arange(0, intr.height, stride, device=device),
+                          torch.arange(0, intr.width, stride, device=device), indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)
+    return v * intr.width + u, pixel_directions(intr, u.float(), v.float())
+
+
 def world_rays(c2w: Tensor, dirs_cam: Tensor) -> tuple[Tensor, Tensor]:
     """Rotate camera-frame directions into the world.
 

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from inrslam.fields import Field, FieldConfig, build_field, make_optimizer
-from inrslam.geometry.camera import pixel_directions, world_rays
+from inrslam.geometry.camera import grid_directions, world_rays
 from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.rendering import (
     LossConfig,
@@ -122,8 +122,7 @@ class SceneModel(nn.Module):
         surface = depth == "surface" and getattr(self.renderer, "sdf_based", True)  # nerf: no SDF to cross
         dev = self.bounds.device
         H, W = intr.height, intr.width
-        v, u = torch.meshgrid(torch.arange(H, device=dev), torch.arange(W, device=dev), indexing="ij")
-        dirs_cam = pixel_directions(intr, u.reshape(-1).float(), v.reshape(-1).float())
+        _, dirs_cam = grid_directions(intr, device=dev)
         dirs_all = dirs_cam @ c2w[:3, :3].T
         rgb_out, depth_out = [], []
         no_jitter = dataclasses.replace(self.cfg.sampling, jitter=False)  # deterministic evaluation renders

@@ -9,7 +9,7 @@ from torch import Tensor, nn
 
 from inrslam.fields import make_optimizer
 from inrslam.fields.config import KernelChoice
-from inrslam.geometry.camera import pixel_directions, world_rays
+from inrslam.geometry.camera import grid_directions, world_rays
 from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.rendering import surface_depth
 from inrslam.slam.ehe.config import EheConfig
@@ -90,8 +90,7 @@ class EheModel(nn.Module):
             raise ValueError(f"render_image: depth must be 'expected' or 'surface', got {depth!r}")
         dev = self.bounds.device
         H, W = intr.height, intr.width
-        v, u = torch.meshgrid(torch.arange(H, device=dev), torch.arange(W, device=dev), indexing="ij")
-        dirs_cam = pixel_directions(intr, u.reshape(-1).float(), v.reshape(-1).float())
+        _, dirs_cam = grid_directions(intr, device=dev)
         rgbs, depths = [], []
         for s in range(0, dirs_cam.shape[0], chunk):
             o, d = world_rays(c2w, dirs_cam[s:s + chunk])

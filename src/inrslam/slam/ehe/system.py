@@ -13,7 +13,7 @@ import trimesh
 
 from inrslam.data.frame import Frame, RGBDDataset
 from inrslam.errors import ConfigError
-from inrslam.geometry.camera import pixel_directions, world_rays
+from inrslam.geometry.camera import grid_directions, world_rays
 from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.slam.ehe.config import EheConfig
 from inrslam.slam.ehe.field import EheField
@@ -101,10 +101,7 @@ class EheSystem(SlamSystem):
         once per camera (about 5 ms of a 640 x 480 frame's back-projection otherwise)."""
         key = (intr, stride)
         if key not in self._grids:
-            v, u = torch.meshgrid(torch.arange(0, intr.height, stride, device=self.device),
-                                  torch.arange(0, intr.width, stride, device=self.device), indexing="ij")
-            u, v = u.reshape(-1), v.reshape(-1)
-            self._grids[key] = v * intr.width + u, pixel_directions(intr, u.float(), v.float())
+            self._grids[key] = grid_directions(intr, stride, self.device)
         return self._grids[key]
 
     def _map_ehe(self, i: int, ft: FrameTensors, c2w: torch.Tensor, depth: dict) -> None:
