@@ -180,6 +180,21 @@ def main() -> None:
             add(f"plane decoders 7-32-32-1/3 fwd+bwd->{wrt}", n, timeit(pdec("numba"), args.reps),
                 timeit(pdec("torch"), args.reps))
 
+    # TensoRF's per-level products of its 2 x (3 planes, 3 lines) x 2 features: fused (kernels.vm, bit-identical)
+    # vs autograd, forward + backward to the lookup's features.
+    from inrslam.fields.kernels.vm import vm_product
+
+    for n in (61_440, 122_880):
+        feats = torch.randn(n, 12, 2).requires_grad_()
+
+        def prod(kernel, feats=feats):
+            def run():
+                feats.grad = None
+                vm_product(feats, 2, False, kernel).sum().backward()
+            return run
+
+        add("TensoRF products 2x2 fwd+bwd", n, timeit(prod("numba"), args.reps), timeit(prod("torch"), args.reps))
+
     # Dense 2-level grid (24 cm, 2 cm) on the 6 x 5 x 3 m box: full mapping step.
     for n in (61_440, 122_880):
         res = {}

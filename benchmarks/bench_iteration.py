@@ -7,7 +7,9 @@ never asserted in tests.
     python benchmarks/bench_iteration.py --encoding hash --reps 40
 
 Rows: `paper` as it runs (fused lookups, numba sampler: bit-identical to the torch one), then the torch sampler
-(the reference, for its share), then `field.decoder_kernel=numba`, then also `loss.kernel=numba`.
+(the reference, for its share), then `field.decoder_kernel=numba`, then also `loss.kernel=numba`. With
+`--encoding tensorf` also `paper` and every fused kernel with TensoRF's plane x line products in autograd (the
+reference of `fields.kernels.vm`, which is bit-identical to it), for the fused products' share.
 """
 
 from __future__ import annotations
@@ -29,9 +31,11 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
+    import inrslam.fields.encoders as encoders_mod
     import inrslam.slam.model as model_mod
     from inrslam.config import load_config
     from inrslam.datasets import open_dataset
+    from inrslam.fields.kernels.vm import vm_product
     from inrslam.rendering.sampling import sample_depths
     from inrslam.slam.frame_tensors import FrameTensors
     from inrslam.slam.system import SlamSystem
@@ -51,14 +55,19 @@ def main() -> None:
     track_rays = ft.sample(cfg.slam.track_pixels, g, cfg.slam.track_edge)
     map_rays = ft.sample(cfg.slam.map_pixels, g)
 
-    def variant(sampler: str, decoder: str, loss: str) -> None:
+    def variant(sampler: str, decoder: str, loss: str, products: str = "auto") -> None:
         model_mod.sample_depths = functools.partial(sample_depths, kernel=sampler)  # type: ignore[assignment]
+        encoders_mod.vm_product = (  # type: ignore[assignment]
+            lambda f, levels, faithful, backend: vm_product(f, levels, faithful, products))
         model.field.decoder_backend = decoder
         model.cfg.loss.kernel = loss
 
     variants = [("paper (numba sampler)", ("auto", "torch", "torch")), ("torch sampler", ("torch", "torch", "torch")),
                 ("+ decoder_kernel=numba", ("auto", "numba", "torch")),
                 ("+ loss.kernel=numba", ("auto", "numba", "numba"))]
+    if args.encoding == "tensorf":
+        variants += [("paper, products autograd", ("auto", "torch", "torch", "torch")),
+                     ("all fused, products autograd", ("auto", "numba", "numba", "torch"))]
 
     def track_iter() -> None:
         pose = c2w.clone().requires_grad_()
@@ -88,8 +97,9 @@ def main() -> None:
         print(f"{name} iteration:")
         for label, _ in variants:
             m = statistics.median(times[label])
-            print(f"  {label:<24} {m:7.2f} ms  {base / m:5.2f}x", flush=True)
+            print(f"  {label:<30} {m:7.2f} ms  {base / m:5.2f}x", flush=True)
     variant("auto", "torch", "torch")
+    encoders_mod.vm_product = vm_product  # type: ignore[assignment]
 
 
 if __name__ == "__main__":
