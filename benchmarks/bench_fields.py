@@ -180,20 +180,23 @@ def main() -> None:
             add(f"plane decoders 7-32-32-1/3 fwd+bwd->{wrt}", n, timeit(pdec("numba"), args.reps),
                 timeit(pdec("torch"), args.reps))
 
-    # TensoRF's per-level products of its 2 x (3 planes, 3 lines) x 2 features: fused (kernels.vm, bit-identical)
-    # vs autograd, forward + backward to the lookup's features.
-    from inrslam.fields.kernels.vm import vm_product
+    # The per-level plane combinations, forward + backward to the lookup's features: tri-plane's sum of 2 x 3 planes
+    # and TensoRF's products of 2 x (3 planes, 3 lines), 2 features; fused (kernels.combine, bit-identical) vs autograd.
+    from inrslam.fields.kernels.combine import plane_sum, vm_product
 
     for n in (61_440, 122_880):
-        feats = torch.randn(n, 12, 2).requires_grad_()
+        for name, width, combine in (("tri-plane sums 2x2", 6, lambda f, k: plane_sum(f, 2, k)),
+                                     ("TensoRF products 2x2", 12, lambda f, k: vm_product(f, 2, False, k))):
+            feats = torch.randn(n, width, 2).requires_grad_()
+            cot = torch.randn(n, 4)
 
-        def prod(kernel, feats=feats):
-            def run():
-                feats.grad = None
-                vm_product(feats, 2, False, kernel).sum().backward()
-            return run
+            def comb(kernel, feats=feats, cot=cot, combine=combine):
+                def run():
+                    feats.grad = None
+                    combine(feats, kernel).backward(cot)
+                return run
 
-        add("TensoRF products 2x2 fwd+bwd", n, timeit(prod("numba"), args.reps), timeit(prod("torch"), args.reps))
+            add(f"{name} fwd+bwd", n, timeit(comb("numba"), args.reps), timeit(comb("torch"), args.reps))
 
     # Dense 2-level grid (24 cm, 2 cm) on the 6 x 5 x 3 m box: full mapping step.
     for n in (61_440, 122_880):

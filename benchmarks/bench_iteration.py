@@ -7,9 +7,10 @@ never asserted in tests.
     python benchmarks/bench_iteration.py --encoding hash --reps 40
 
 Rows: `paper` as it runs (fused lookups, numba sampler: bit-identical to the torch one), then the torch sampler
-(the reference, for its share), then `field.decoder_kernel=numba`, then also `loss.kernel=numba`. With
-`--encoding tensorf` also `paper` and every fused kernel with TensoRF's plane x line products in autograd (the
-reference of `fields.kernels.vm`, which is bit-identical to it), for the fused products' share.
+(the reference, for its share), then `field.decoder_kernel=numba`, then also `loss.kernel=numba`. For the F with
+planes (tri-plane, TensoRF, the hybrids) also `paper` and every fused kernel with the per-level plane sums / plane x
+line products in autograd (the references of `fields.kernels.combine`, bit-identical to the kernels), for their
+share.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ def main() -> None:
     import inrslam.slam.model as model_mod
     from inrslam.config import load_config
     from inrslam.datasets import open_dataset
-    from inrslam.fields.kernels.vm import vm_product
+    from inrslam.fields.kernels.combine import plane_sum, vm_product
     from inrslam.rendering.sampling import sample_depths
     from inrslam.slam.frame_tensors import FrameTensors
     from inrslam.slam.system import SlamSystem
@@ -55,19 +56,20 @@ def main() -> None:
     track_rays = ft.sample(cfg.slam.track_pixels, g, cfg.slam.track_edge)
     map_rays = ft.sample(cfg.slam.map_pixels, g)
 
-    def variant(sampler: str, decoder: str, loss: str, products: str = "auto") -> None:
+    def variant(sampler: str, decoder: str, loss: str, combine: str = "auto") -> None:
         model_mod.sample_depths = functools.partial(sample_depths, kernel=sampler)  # type: ignore[assignment]
         encoders_mod.vm_product = (  # type: ignore[assignment]
-            lambda f, levels, faithful, backend: vm_product(f, levels, faithful, products))
+            lambda f, levels, faithful, backend: vm_product(f, levels, faithful, combine))
+        encoders_mod.plane_sum = lambda f, levels, backend: plane_sum(f, levels, combine)  # type: ignore[assignment]
         model.field.decoder_backend = decoder
         model.cfg.loss.kernel = loss
 
     variants = [("paper (numba sampler)", ("auto", "torch", "torch")), ("torch sampler", ("torch", "torch", "torch")),
                 ("+ decoder_kernel=numba", ("auto", "numba", "torch")),
                 ("+ loss.kernel=numba", ("auto", "numba", "numba"))]
-    if args.encoding == "tensorf":
-        variants += [("paper, products autograd", ("auto", "torch", "torch", "torch")),
-                     ("all fused, products autograd", ("auto", "numba", "numba", "torch"))]
+    if args.encoding in ("triplane", "tensorf", "dense+tri", "hash+tri"):
+        variants += [("paper, planes combined autograd", ("auto", "torch", "torch", "torch")),
+                     ("all fused, planes autograd", ("auto", "numba", "numba", "torch"))]
 
     def track_iter() -> None:
         pose = c2w.clone().requires_grad_()
@@ -97,9 +99,9 @@ def main() -> None:
         print(f"{name} iteration:")
         for label, _ in variants:
             m = statistics.median(times[label])
-            print(f"  {label:<30} {m:7.2f} ms  {base / m:5.2f}x", flush=True)
+            print(f"  {label:<32} {m:7.2f} ms  {base / m:5.2f}x", flush=True)
     variant("auto", "torch", "torch")
-    encoders_mod.vm_product = vm_product  # type: ignore[assignment]
+    encoders_mod.vm_product, encoders_mod.plane_sum = vm_product, plane_sum  # type: ignore[assignment]
 
 
 if __name__ == "__main__":

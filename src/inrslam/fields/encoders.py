@@ -13,7 +13,7 @@ from torch import nn
 
 from inrslam.fields.config import KernelChoice
 from inrslam.fields.kernels import TableLayout, multilinear
-from inrslam.fields.kernels.vm import vm_product
+from inrslam.fields.kernels.combine import plane_sum, vm_product
 from inrslam.fields.resolution import grid_entries, line_entries, plane_entries
 
 
@@ -63,8 +63,8 @@ class TriPlaneEncoder(TableEncoder):
         nn.init.normal_(self.table, 0.0, init_std)
 
     def forward(self, p: torch.Tensor) -> torch.Tensor:
-        f = self.lookup(p).reshape(p.shape[0], self.levels, 3, self.feature_dim)
-        return f.sum(2).reshape(p.shape[0], -1)
+        # the per-level sums by `field.kernel`: fused on CPU, bit-identical to the reference (`kernels.combine`)
+        return plane_sum(self.lookup(p), self.levels, self.kernel.value)
 
 
 class TensoRFEncoder(TableEncoder):
@@ -84,5 +84,5 @@ class TensoRFEncoder(TableEncoder):
         nn.init.normal_(self.table, 0.0, init_std)
 
     def forward(self, p: torch.Tensor) -> torch.Tensor:
-        # the per-level products by `field.kernel`: fused on CPU, bit-identical to the reference (`kernels.vm`)
+        # the per-level products by `field.kernel`: fused on CPU, bit-identical to the reference (`kernels.combine`)
         return vm_product(self.lookup(p), self.levels, self.faithful, self.kernel.value)

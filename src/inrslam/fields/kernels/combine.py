@@ -1,15 +1,18 @@
-"""Fused TensoRF vector-matrix product on CPU tensors (`TensoRFEncoder`, docs/speed.md).
+"""Fused per-level combinations of plane and line features on CPU tensors (docs/speed.md).
 
-The lookup gives, per point and level l, three plane features P_l,k and three line features ℓ_l,k (k = xy·z, xz·y,
-yz·x), F each. TensoRF combines them per level:
+A plane encoder's lookup gives, per point and level l, three plane features P_l,k (k = xy, xz, yz) and, for TensoRF,
+three line features ℓ_l,k (z, y, x), F each. The encoders combine them per level:
 
-    true VM:   f_l = Σ_k P_l,k ⊙ ℓ_l,k                      faithful: f_l = (Σ_k P_l,k) ⊙ (Σ_k ℓ_l,k)
+    tri-plane:             f_l = Σ_k P_l,k                                        (`plane_sum`)
+    TensoRF, true VM:      f_l = Σ_k P_l,k ⊙ ℓ_l,k                                (`vm_product`)
+    TensoRF, faithful:     f_l = (Σ_k P_l,k) ⊙ (Σ_k ℓ_l,k)
 
-In autograd that is a product and a reduction over a size-3 axis of strided views, forward and backward: about
-12 ms per mapping batch of 122,880 samples, a fifth of the encoder. One numba pass each way does it in the same
-floating-point operations in the same order as the reference (`vm_product_torch`: products rounded, then
-(a0 + a1) + a2; fastmath off, so no fused multiply-add), so outputs and gradients are bit-identical to it and a run
-does not change when the kernel is used. Points are independent: results never depend on the thread count.
+In autograd these are products and reductions over a size-3 axis of (strided) views, forward and backward: for
+TensoRF about 6 ms per mapping batch of 122,880 samples, more than the kernel's whole pass. One numba pass each way
+does the same floating-point operations in the same order as the references (`plane_sum_torch`, `vm_product_torch`:
+products rounded, then (a0 + a1) + a2; fastmath off, so no fused multiply-add), so outputs and gradients are
+bit-identical to them and a run does not change when the kernels are used. Points are independent: results never
+depend on the thread count.
 """
 
 from __future__ import annotations
@@ -24,6 +27,12 @@ from inrslam.fields.kernels.function import cpu_floats, second_order_active
 BLOCK = 2048
 
 
+def plane_sum_torch(f: torch.Tensor, levels: int) -> torch.Tensor:
+    """The reference: plane features f (N, 3L, F) (level-major) -> (N, L·F), the sum of each level's three."""
+    n = f.shape[0]
+    return f.reshape(n, levels, 3, f.shape[2]).sum(2).reshape(n, -1)
+
+
 def vm_product_torch(f: torch.Tensor, levels: int, faithful: bool) -> torch.Tensor:
     """The reference: lookup features f (N, 6L, F) (3L planes, then 3L lines, level-major) -> (N, L·F)."""
     n, F = f.shape[0], f.shape[2]
@@ -31,6 +40,30 @@ def vm_product_torch(f: torch.Tensor, levels: int, faithful: bool) -> torch.Tens
     lines = f[:, 3 * levels :].reshape(n, levels, 3, F)
     out = planes.sum(2) * lines.sum(2) if faithful else (planes * lines).sum(2)
     return out.reshape(n, -1)
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def _sum_forward(f, levels, out):  # pragma: no cover - numba
+    """out (N, L, F) from f (N, 3L, F) as `plane_sum_torch`."""
+    n_pts, n_feat = f.shape[0], f.shape[2]
+    for b in prange((n_pts + BLOCK - 1) // BLOCK):
+        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
+            for lv in range(levels):
+                p = 3 * lv
+                for c in range(n_feat):
+                    out[n, lv, c] = (f[n, p, c] + f[n, p + 1, c]) + f[n, p + 2, c]
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def _sum_backward(g, levels, gf):  # pragma: no cover - numba
+    """gf (N, 3L, F): each plane's gradient is its level's output gradient g (N, L, F) (autograd's expand)."""
+    n_pts, n_feat = g.shape[0], g.shape[2]
+    for b in prange((n_pts + BLOCK - 1) // BLOCK):
+        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
+            for lv in range(levels):
+                for k in range(3):
+                    for c in range(n_feat):
+                        gf[n, 3 * lv + k, c] = g[n, lv, c]
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -78,6 +111,27 @@ def _backward(f, g, levels, faithful, gf):  # pragma: no cover - numba
                             gf[n, q + k, c] = gv * f[n, p + k, c] + 0.0
 
 
+class PlaneSumFn(torch.autograd.Function):
+    """`plane_sum_torch` in one numba pass each way (once differentiable)."""
+
+    @staticmethod
+    def forward(ctx, f, levels):
+        fc = f.detach().contiguous()
+        out = np.empty((fc.shape[0], levels, fc.shape[2]), dtype=fc.numpy().dtype)
+        _sum_forward(fc.numpy(), levels, out)
+        ctx.levels, ctx.shape = levels, fc.shape
+        return torch.from_numpy(out).reshape(fc.shape[0], -1)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):
+        n, _, n_feat = ctx.shape
+        gc = g.detach().reshape(n, ctx.levels, n_feat).contiguous()
+        gf = np.empty(ctx.shape, dtype=gc.numpy().dtype)
+        _sum_backward(gc.numpy(), ctx.levels, gf)
+        return torch.from_numpy(gf), None
+
+
 class VmProductFn(torch.autograd.Function):
     """`vm_product_torch` in one numba pass each way (once differentiable)."""
 
@@ -100,6 +154,27 @@ class VmProductFn(torch.autograd.Function):
         return torch.from_numpy(gf), None, None
 
 
+def _fused(f: torch.Tensor, backend: str) -> bool:
+    """Whether the numba kernel runs for `backend` (auto: CPU float32/float64, outside `kernels.second_order()`,
+    where a ``create_graph`` backward may follow and the differentiable reference runs)."""
+    if backend not in ("auto", "torch", "numba"):
+        raise ValueError(f"unknown kernel backend {backend!r} (choices: auto, torch, numba)")
+    if backend == "torch" or second_order_active() or (backend == "auto" and not cpu_floats(f)):
+        return False
+    if not cpu_floats(f):
+        raise ValueError("kernel 'numba' needs CPU float32/float64 tensors; use 'auto' or 'torch' otherwise")
+    return True
+
+
+def plane_sum(f: torch.Tensor, levels: int, backend: str = "auto") -> torch.Tensor:
+    """Tri-plane's per-level sum of plane features f (N, 3L, F) -> (N, L·F) (module docstring); backend as
+    `vm_product`."""
+    if f.dim() != 3 or f.shape[1] != 3 * levels:
+        raise ValueError(f"plane_sum: expected plane features (N, {3 * levels}, F) for {levels} level(s), "
+                         f"got {tuple(f.shape)}")
+    return PlaneSumFn.apply(f, levels) if _fused(f, backend) else plane_sum_torch(f, levels)
+
+
 def vm_product(f: torch.Tensor, levels: int, faithful: bool, backend: str = "auto") -> torch.Tensor:
     """TensoRF's per-level combination of lookup features f (N, 6L, F) -> (N, L·F) (module docstring).
 
@@ -108,10 +183,4 @@ def vm_product(f: torch.Tensor, levels: int, faithful: bool, backend: str = "aut
     if f.dim() != 3 or f.shape[1] != 6 * levels:
         raise ValueError(f"vm_product: expected lookup features (N, {6 * levels}, F) for {levels} level(s), "
                          f"got {tuple(f.shape)}")
-    if backend not in ("auto", "torch", "numba"):
-        raise ValueError(f"unknown kernel backend {backend!r} (choices: auto, torch, numba)")
-    if backend == "torch" or second_order_active() or (backend == "auto" and not cpu_floats(f)):
-        return vm_product_torch(f, levels, faithful)
-    if not cpu_floats(f):
-        raise ValueError("kernel 'numba' needs CPU float32/float64 tensors; use 'auto' or 'torch' otherwise")
-    return VmProductFn.apply(f, levels, faithful)
+    return VmProductFn.apply(f, levels, faithful) if _fused(f, backend) else vm_product_torch(f, levels, faithful)
