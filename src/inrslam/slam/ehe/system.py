@@ -13,6 +13,7 @@ import trimesh
 
 from inrslam.data.frame import Frame, RGBDDataset
 from inrslam.errors import ConfigError
+from inrslam.geometry.backproject import world_points
 from inrslam.geometry.camera import grid_directions, world_rays
 from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.slam.ehe.config import EheConfig
@@ -91,10 +92,7 @@ class EheSystem(SlamSystem):
         """World points (N, 3) of the frame's valid depth (every `point_stride`-th row / column)."""
         c = self.cfg.ehe
         idx, dirs = self._point_grid(ft.intr, c.point_stride)
-        depth = ft.depth[idx]
-        ok = (depth > c.depth_min) & (depth < c.depth_max)
-        o, d = world_rays(c2w, dirs[ok] * depth[ok][:, None])
-        return o + d
+        return world_points(ft.depth, idx, dirs, c2w, c.depth_min, c.depth_max)
 
     def _point_grid(self, intr: Intrinsics, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(flat pixel indices (M,), camera directions (M, 3) with z = 1) of every `stride`-th row / column, computed
