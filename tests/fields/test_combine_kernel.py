@@ -10,7 +10,6 @@ from inrslam.fields import kernels
 from inrslam.fields.config import KernelChoice
 from inrslam.fields.encoders import TensoRFEncoder, TriPlaneEncoder
 from inrslam.fields.kernels.combine import (
-    BLOCK,
     PlaneSumFn,
     VmProductFn,
     plane_sum,
@@ -19,6 +18,8 @@ from inrslam.fields.kernels.combine import (
     vm_product_torch,
 )
 from inrslam.fields.kernels.threads import thread_scope
+
+SIZES = [[6, 5, 4], [11, 9, 7]]  # vertices per axis of two levels' planes and lines
 
 
 def _inputs(n, levels, feat, dtype=torch.float32, per_level=6):
@@ -43,7 +44,7 @@ def _bits(t):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("faithful", [False, True])
-@pytest.mark.parametrize("levels, feat, n", [(1, 1, 5), (2, 2, BLOCK + 3), (3, 4, 3 * BLOCK - 1)])
+@pytest.mark.parametrize("levels, feat, n", [(1, 1, 5), (2, 2, 2051), (3, 4, 6143)])
 def test_fused_is_bit_identical_to_the_reference(levels, feat, n, faithful, dtype):
     """The same operations in the same order: outputs and gradients equal to the bit (zero signs included), so a
     run's trajectory does not change with the kernel."""
@@ -76,7 +77,7 @@ def test_analytic_case():
 
 
 def test_independent_of_threads():
-    f, cot = _inputs(4 * BLOCK + 17, 2, 2)
+    f, cot = _inputs(8209, 2, 2)
     runs = []
     for n in (1, 2):
         with thread_scope(n):
@@ -114,7 +115,7 @@ def test_dispatch_and_bad_input():
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("levels, feat, n", [(1, 1, 5), (2, 2, BLOCK + 3), (3, 4, 3 * BLOCK - 1)])
+@pytest.mark.parametrize("levels, feat, n", [(1, 1, 5), (2, 2, 2051), (3, 4, 6143)])
 def test_plane_sum_is_bit_identical_to_the_reference(levels, feat, n, dtype):
     f, cot = _inputs(n, levels, feat, dtype, per_level=3)
     runs = []
@@ -139,7 +140,7 @@ def test_plane_sum_gradcheck_analytic_threads_and_dispatch():
     out.backward(torch.tensor([[10.0, -1.0]]))
     assert out.tolist() == [[6.0, 15.0]]
     assert leaf.grad.reshape(-1).tolist() == [10.0, 10.0, 10.0, -1.0, -1.0, -1.0]
-    big, _ = _inputs(4 * BLOCK + 17, 2, 2, per_level=3)
+    big, _ = _inputs(8209, 2, 2, per_level=3)
     outs = []
     for n in (1, 2):
         with thread_scope(n):
@@ -154,18 +155,22 @@ def test_plane_sum_gradcheck_analytic_threads_and_dispatch():
         plane_sum(big[:, :5], 2)
 
 
-@pytest.mark.parametrize("faithful", [False, True])
-def test_encoder_combines_its_lookup_as_the_reference(faithful):
-    """`TensoRFEncoder` (kernel auto: fused lookup and product) gives the reference product of its own lookup, and
-    the same table and input gradients, bit for bit."""
+@pytest.mark.parametrize("encoder, reference", [
+    (lambda: TriPlaneEncoder(SIZES, 2, False, 0.1, KernelChoice.AUTO), lambda f: plane_sum_torch(f, 2)),
+    (lambda: TensoRFEncoder(SIZES, 2, False, 0.1, KernelChoice.AUTO), lambda f: vm_product_torch(f, 2, False)),
+    (lambda: TensoRFEncoder(SIZES, 2, True, 0.1, KernelChoice.AUTO), lambda f: vm_product_torch(f, 2, True))],
+    ids=["tri-plane", "tensorf", "tensorf-faithful"])
+def test_encoder_combines_its_lookup_as_the_reference(encoder, reference):
+    """The encoders (kernel auto: fused lookup and combination) give the reference combination of their own lookup,
+    and the same table and input gradients, bit for bit."""
     torch.manual_seed(0)
-    enc = TensoRFEncoder([[6, 5, 4], [11, 9, 7]], 2, faithful, 0.1, KernelChoice.AUTO)
+    enc = encoder()
     p = torch.rand(500, 3)
     grads = []
     for combine in ("encoder", "reference"):
         enc.zero_grad()
         x = p.clone().requires_grad_()
-        out = enc(x) if combine == "encoder" else vm_product_torch(enc.lookup(x), 2, faithful)
+        out = enc(x) if combine == "encoder" else reference(enc.lookup(x))
         out.square().sum().backward()
         grads.append((out.detach(), enc.table.grad.to_dense(), x.grad))
     for a, b in zip(*grads):
@@ -182,19 +187,3 @@ def test_auto_runs_on_any_device_and_matches_the_reference(device):
     assert out_a.device.type == device
     assert torch.equal(out_a, out_r) and torch.equal(g_a, g_r)
 
-
-def test_tri_plane_encoder_sums_its_lookup_as_the_reference():
-    """`TriPlaneEncoder` (kernel auto) gives the reference sum of its own lookup, and the same table and input
-    gradients, bit for bit."""
-    torch.manual_seed(0)
-    enc = TriPlaneEncoder([[6, 5, 4], [11, 9, 7]], 2, False, 0.1, KernelChoice.AUTO)
-    p = torch.rand(500, 3)
-    grads = []
-    for combine in ("encoder", "reference"):
-        enc.zero_grad()
-        x = p.clone().requires_grad_()
-        out = enc(x) if combine == "encoder" else plane_sum_torch(enc.lookup(x), 2)
-        out.square().sum().backward()
-        grads.append((out.detach(), enc.table.grad.to_dense(), x.grad))
-    for a, b in zip(*grads):
-        assert torch.equal(a, b)

@@ -23,9 +23,6 @@ from numba import njit, prange
 
 from inrslam.fields.kernels.function import cpu_floats, second_order_active
 
-#: Points per block of the parallel loops.
-BLOCK = 2048
-
 
 def plane_sum_torch(f: torch.Tensor, levels: int) -> torch.Tensor:
     """The reference: plane features f (N, 3L, F) (level-major) -> (N, L·F), the sum of each level's three."""
@@ -46,42 +43,39 @@ def vm_product_torch(f: torch.Tensor, levels: int, faithful: bool) -> torch.Tens
 def _sum_forward(f, levels, out):  # pragma: no cover - numba
     """out (N, L, F) from f (N, 3L, F) as `plane_sum_torch`."""
     n_pts, n_feat = f.shape[0], f.shape[2]
-    for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
-            for lv in range(levels):
-                p = 3 * lv
-                for c in range(n_feat):
-                    out[n, lv, c] = (f[n, p, c] + f[n, p + 1, c]) + f[n, p + 2, c]
+    for n in prange(n_pts):
+        for lv in range(levels):
+            p = 3 * lv
+            for c in range(n_feat):
+                out[n, lv, c] = (f[n, p, c] + f[n, p + 1, c]) + f[n, p + 2, c]
 
 
 @njit(parallel=True, cache=True, fastmath=False)
 def _sum_backward(g, levels, gf):  # pragma: no cover - numba
     """gf (N, 3L, F): each plane's gradient is its level's output gradient g (N, L, F) (autograd's expand)."""
     n_pts, n_feat = g.shape[0], g.shape[2]
-    for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
-            for lv in range(levels):
-                for k in range(3):
-                    for c in range(n_feat):
-                        gf[n, 3 * lv + k, c] = g[n, lv, c]
+    for n in prange(n_pts):
+        for lv in range(levels):
+            for k in range(3):
+                for c in range(n_feat):
+                    gf[n, 3 * lv + k, c] = g[n, lv, c]
 
 
 @njit(parallel=True, cache=True, fastmath=False)
 def _forward(f, levels, faithful, out):  # pragma: no cover - numba
     """out (N, L, F) from f (N, 6L, F) as `vm_product_torch`."""
     n_pts, n_feat = f.shape[0], f.shape[2]
-    for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
-            for lv in range(levels):
-                p = 3 * lv
-                q = 3 * levels + 3 * lv
-                for c in range(n_feat):
-                    if faithful:
-                        out[n, lv, c] = (((f[n, p, c] + f[n, p + 1, c]) + f[n, p + 2, c])
-                                         * ((f[n, q, c] + f[n, q + 1, c]) + f[n, q + 2, c]))
-                    else:
-                        out[n, lv, c] = ((f[n, p, c] * f[n, q, c] + f[n, p + 1, c] * f[n, q + 1, c])
-                                         + f[n, p + 2, c] * f[n, q + 2, c])
+    for n in prange(n_pts):
+        for lv in range(levels):
+            p = 3 * lv
+            q = 3 * levels + 3 * lv
+            for c in range(n_feat):
+                if faithful:
+                    out[n, lv, c] = (((f[n, p, c] + f[n, p + 1, c]) + f[n, p + 2, c])
+                                     * ((f[n, q, c] + f[n, q + 1, c]) + f[n, q + 2, c]))
+                else:
+                    out[n, lv, c] = ((f[n, p, c] * f[n, q, c] + f[n, p + 1, c] * f[n, q + 1, c])
+                                     + f[n, p + 2, c] * f[n, q + 2, c])
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -90,25 +84,24 @@ def _backward(f, g, levels, faithful, gf):  # pragma: no cover - numba
     (faithful: times the sum of the level's lines), and the other way round. Autograd adds the planes' and the
     lines' gradients of f (each zero in the other's half), so a -0 product becomes +0 there: + 0.0 does the same."""
     n_pts, n_feat = f.shape[0], f.shape[2]
-    for b in prange((n_pts + BLOCK - 1) // BLOCK):
-        for n in range(b * BLOCK, min(n_pts, (b + 1) * BLOCK)):
-            for lv in range(levels):
-                p = 3 * lv
-                q = 3 * levels + 3 * lv
-                for c in range(n_feat):
-                    gv = g[n, lv, c]
-                    if faithful:
-                        sp = (f[n, p, c] + f[n, p + 1, c]) + f[n, p + 2, c]
-                        sl = (f[n, q, c] + f[n, q + 1, c]) + f[n, q + 2, c]
-                        gp = gv * sl + 0.0  # + 0.0 as the reference's sum of the two slices' gradients: -0 -> +0
-                        gl = gv * sp + 0.0
-                        for k in range(3):
-                            gf[n, p + k, c] = gp
-                            gf[n, q + k, c] = gl
-                    else:
-                        for k in range(3):
-                            gf[n, p + k, c] = gv * f[n, q + k, c] + 0.0
-                            gf[n, q + k, c] = gv * f[n, p + k, c] + 0.0
+    for n in prange(n_pts):
+        for lv in range(levels):
+            p = 3 * lv
+            q = 3 * levels + 3 * lv
+            for c in range(n_feat):
+                gv = g[n, lv, c]
+                if faithful:
+                    sp = (f[n, p, c] + f[n, p + 1, c]) + f[n, p + 2, c]
+                    sl = (f[n, q, c] + f[n, q + 1, c]) + f[n, q + 2, c]
+                    gp = gv * sl + 0.0  # + 0.0 as the reference's sum of the two slices' gradients: -0 -> +0
+                    gl = gv * sp + 0.0
+                    for k in range(3):
+                        gf[n, p + k, c] = gp
+                        gf[n, q + k, c] = gl
+                else:
+                    for k in range(3):
+                        gf[n, p + k, c] = gv * f[n, q + k, c] + 0.0
+                        gf[n, q + k, c] = gv * f[n, p + k, c] + 0.0
 
 
 class PlaneSumFn(torch.autograd.Function):
