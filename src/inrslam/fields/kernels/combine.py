@@ -7,8 +7,9 @@ three line features ℓ_l,k (z, y, x), F each. The encoders combine them per lev
     TensoRF, true VM:      f_l = Σ_k P_l,k ⊙ ℓ_l,k                                (`vm_product`)
     TensoRF, faithful:     f_l = (Σ_k P_l,k) ⊙ (Σ_k ℓ_l,k)
 
-In autograd these are products and reductions over a size-3 axis of (strided) views, forward and backward: for
-TensoRF about 6 ms per mapping batch of 122,880 samples, more than the kernel's whole pass. One numba pass each way
+In autograd these are products and reductions over a size-3 axis of (strided) views, forward and backward: on a
+mapping batch of 122,880 samples 6-13 ms for TensoRF's and 5 ms for tri-plane's, against about 2 and 1 ms for the
+kernels (benchmarks/bench_fields.py). One numba pass each way
 does the same floating-point operations in the same order as the references (`plane_sum_torch`, `vm_product_torch`:
 products rounded, then (a0 + a1) + a2; fastmath off, so no fused multiply-add), so outputs and gradients are
 bit-identical to them and a run does not change when the kernels are used. Points are independent: results never
@@ -62,7 +63,7 @@ def _sum_backward(g, levels, gf):  # pragma: no cover - numba
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def _forward(f, levels, faithful, out):  # pragma: no cover - numba
+def _vm_forward(f, levels, faithful, out):  # pragma: no cover - numba
     """out (N, L, F) from f (N, 6L, F) as `vm_product_torch`."""
     n_pts, n_feat = f.shape[0], f.shape[2]
     for n in prange(n_pts):
@@ -79,7 +80,7 @@ def _forward(f, levels, faithful, out):  # pragma: no cover - numba
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def _backward(f, g, levels, faithful, gf):  # pragma: no cover - numba
+def _vm_backward(f, g, levels, faithful, gf):  # pragma: no cover - numba
     """gf (N, 6L, F) = ∂⟨g, out⟩/∂f for the output gradient g (N, L, F): a plane's gradient is g times its line
     (faithful: times the sum of the level's lines), and the other way round. Autograd adds the planes' and the
     lines' gradients of f (each zero in the other's half), so a -0 product becomes +0 there: + 0.0 does the same."""
@@ -132,7 +133,7 @@ class VmProductFn(torch.autograd.Function):
     def forward(ctx, f, levels, faithful):
         fc = f.detach().contiguous()
         out = np.empty((fc.shape[0], levels, fc.shape[2]), dtype=fc.numpy().dtype)
-        _forward(fc.numpy(), levels, faithful, out)
+        _vm_forward(fc.numpy(), levels, faithful, out)
         ctx.save_for_backward(fc)
         ctx.levels, ctx.faithful = levels, faithful
         return torch.from_numpy(out).reshape(fc.shape[0], -1)
@@ -143,7 +144,7 @@ class VmProductFn(torch.autograd.Function):
         (fc,) = ctx.saved_tensors
         gc = g.detach().to(fc.dtype).reshape(fc.shape[0], ctx.levels, fc.shape[2]).contiguous()
         gf = np.empty(fc.shape, dtype=fc.numpy().dtype)
-        _backward(fc.numpy(), gc.numpy(), ctx.levels, ctx.faithful, gf)
+        _vm_backward(fc.numpy(), gc.numpy(), ctx.levels, ctx.faithful, gf)
         return torch.from_numpy(gf), None, None
 
 
