@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from inrslam.fields.kernels.function import cpu_floats, second_order_active
+from inrslam.fields.kernels.function import cpu_floats, resolve_kernel
 
 
 def plane_sum_torch(f: torch.Tensor, levels: int) -> torch.Tensor:
@@ -149,15 +149,9 @@ class VmProductFn(torch.autograd.Function):
 
 
 def _fused(f: torch.Tensor, backend: str) -> bool:
-    """Whether the numba kernel runs for `backend` (auto: CPU float32/float64, outside `kernels.second_order()`,
-    where a ``create_graph`` backward may follow and the differentiable reference runs)."""
-    if backend not in ("auto", "torch", "numba"):
-        raise ValueError(f"unknown kernel backend {backend!r} (choices: auto, torch, numba)")
-    if backend == "torch" or second_order_active() or (backend == "auto" and not cpu_floats(f)):
-        return False
-    if not cpu_floats(f):
-        raise ValueError("kernel 'numba' needs CPU float32/float64 tensors; use 'auto' or 'torch' otherwise")
-    return True
+    """Whether the numba kernel runs for `backend` (`function.resolve_kernel`: auto on CPU float32/float64, never
+    inside `kernels.second_order()`)."""
+    return resolve_kernel(backend, cpu_floats(f), "kernel backend", "CPU float32/float64 tensors") == "numba"
 
 
 def plane_sum(f: torch.Tensor, levels: int, backend: str = "auto") -> torch.Tensor:

@@ -195,6 +195,22 @@ def second_order_active() -> bool:
     return _SCOPES.second_order > 0
 
 
+def resolve_kernel(backend: str, fusable: bool, what: str, needs: str) -> str:
+    """The backend a fused kernel's dispatcher runs ("numba" or "torch"): the reference wherever a second-order
+    backward may follow (inside ``second_order()``: NeuS normals), else numba for "auto" where ``fusable``; an
+    unknown name, or "numba" where it cannot run, errors naming ``what`` (e.g. "decoder kernel") and what it
+    ``needs``."""
+    if backend not in ("auto", "torch", "numba"):
+        raise ValueError(f"unknown {what} {backend!r} (choices: auto, torch, numba)")
+    if second_order_active():
+        return "torch"
+    if backend == "auto":
+        return "numba" if fusable else "torch"
+    if backend == "numba" and not fusable:
+        raise ValueError(f"{what} 'numba' needs {needs}; use 'auto' or 'torch' otherwise")
+    return backend
+
+
 def cpu_floats(*tensors: torch.Tensor) -> bool:
     """Whether the fused numba kernels can take these tensors: all on the CPU, of one dtype, float32 or float64."""
     return (all(t.device.type == "cpu" for t in tensors) and len({t.dtype for t in tensors}) == 1

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from inrslam.fields.kernels.function import cpu_floats, second_order_active
+from inrslam.fields.kernels.function import cpu_floats, resolve_kernel
 
 #: Samples per block of the parallel loops at most (`block_rows`: fixed by the layer shapes, so that the weight
 #: gradients sum in the same order on any number of threads).
@@ -162,16 +162,6 @@ def mlp2(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, backend: str = "au
 
 
 def resolve_backend(backend: str, fusable: bool) -> str:
-    """The backend that runs: the reference wherever a second-order backward may follow (inside
-    ``kernels.second_order()``: NeuS normals), else numba for "auto" where fusable; an unknown name or an impossible
-    "numba" errors."""
-    if backend not in ("auto", "torch", "numba"):
-        raise ValueError(f"unknown decoder kernel {backend!r} (choices: auto, torch, numba)")
-    if second_order_active():
-        return "torch"
-    if backend == "auto":
-        return "numba" if fusable else "torch"
-    if backend == "numba" and not fusable:
-        raise ValueError("decoder kernel 'numba' needs CPU float32/float64 tensors of one dtype and layers of at "
-                         f"most {BLAS_SINGLE_THREAD_MNK} weights; use 'auto' or 'torch' otherwise")
-    return backend
+    """`function.resolve_kernel` for the decoder kernels (`field.decoder_kernel`)."""
+    return resolve_kernel(backend, fusable, "decoder kernel", "CPU float32/float64 tensors of one dtype and layers "
+                          f"of at most {BLAS_SINGLE_THREAD_MNK} weights")
