@@ -166,3 +166,24 @@ def test_the_ehe_loops_config_protocol_names_run_config_sections():
 
     wanted, run = typing.get_type_hints(EheRunConfig), typing.get_type_hints(RunConfig)
     assert {k: run[k] for k in wanted} == wanted
+
+
+def test_touched_rows_is_an_ablation_key_of_the_dense_level(tmp_path):
+    """`ehe.touched_rows` reaches the dense level; "read" and "gradient" map the same frames to different maps
+    (rows read only by samples without gradient keep their momentum steps or not), each deterministic."""
+    from inrslam.fields.config import TouchedRows
+    from inrslam.slam.ehe.model import EheModel
+
+    bounds = np.array([[-1.0, 1.0], [-1.0, 1.0], [0.0, 2.0]])
+    assert EheModel(ehe_cfg(), bounds).field.grid.touched == TouchedRows.GRADIENT  # the preset's setting
+    assert EheModel(ehe_cfg(["ehe.touched_rows=read"]), bounds).field.grid.touched == TouchedRows.READ
+    with pytest.raises(ConfigError, match="ehe.touched_rows"):
+        ehe_cfg(["ehe.touched_rows=all"])
+    tables = {}
+    for touched in ("read", "gradient", "gradient"):
+        out = tmp_path / f"{touched}{len(tables)}"
+        run_slam(ehe_cfg([f"ehe.touched_rows={touched}", "data.max_frames=3", "eval.enabled=false",
+                          "mesh.enabled=false"]), out)
+        tables[out.name] = load_run(out).model.field.grid.table.detach().clone()
+    assert torch.equal(tables["gradient1"], tables["gradient2"])
+    assert not torch.equal(tables["read0"], tables["gradient1"])

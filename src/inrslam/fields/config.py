@@ -22,6 +22,15 @@ class KernelChoice(str, enum.Enum):
     NUMBA = "numba"  # fused numba CPU kernels (CPU tensors only)
 
 
+class TouchedRows(str, enum.Enum):
+    """Which rows of a table one lazy-Adam step updates (`fields.optim`): the fused backward decides."""
+
+    READ = "read"  # every row read with a non-zero interpolation weight (the default of every F)
+    GRADIENT = "gradient"  # only rows with a non-zero gradient: zero-gradient points are skipped in the backward
+    # (the two differ for tables with a sparse gradient, more than DENSE_GRAD_MAX_ROWS rows: a dense gradient's zero
+    # rows are never updated)
+
+
 @dataclass
 class MlpConfig:
     """Trunk of the MLP representation (`field.mlp.*`, used when `field.encoding` is mlp)."""

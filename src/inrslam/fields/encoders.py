@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from inrslam.fields.config import KernelChoice
+from inrslam.fields.config import KernelChoice, TouchedRows
 from inrslam.fields.kernels import TableLayout, multilinear
 from inrslam.fields.kernels.combine import plane_sum, vm_product
 from inrslam.fields.resolution import grid_entries, line_entries, plane_entries
@@ -27,10 +27,11 @@ class TableEncoder(nn.Module):
         self.layout = TableLayout.build(entries)
         self.feature_dim = feature_dim
         self.kernel = KernelChoice(kernel)
+        self.touched = TouchedRows.READ  # rows a lazy-Adam step updates (`TouchedRows`); an owner may change it
         self.table = nn.Parameter(torch.empty(self.layout.total_rows, feature_dim))
 
     def lookup(self, p: torch.Tensor) -> torch.Tensor:
-        return multilinear(p, self.table, self.layout, self.kernel.value)
+        return multilinear(p, self.table, self.layout, self.kernel.value, touched=TouchedRows(self.touched).value)
 
     def extra_repr(self) -> str:
         res = [tuple(int(v) for v in r[:d]) for r, d in zip(self.layout.res, self.layout.ndim)]

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from inrslam.fields.kernels import generic, sparse_rows, trilinear
+from inrslam.fields.kernels.compact import nonzero_points
 from inrslam.fields.kernels.layout import TableLayout
 from inrslam.fields.kernels.torch_interp import interp_torch
 
@@ -295,7 +296,8 @@ class MultilinearFn(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, sparse: bool) -> torch.Tensor:
+    def forward(ctx, xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, sparse: bool,
+                skip_zero: bool = False) -> torch.Tensor:
         tab = table.detach()
         xn_np = xn.detach().contiguous().numpy()
         ctx.jac = None
@@ -312,6 +314,7 @@ class MultilinearFn(torch.autograd.Function):
         ctx.save_for_backward(xn, table)
         ctx.layout = layout
         ctx.sparse = sparse
+        ctx.skip_zero = skip_zero
         return out
 
     @staticmethod
@@ -325,7 +328,7 @@ class MultilinearFn(torch.autograd.Function):
             if need_t:  # a differentiable table gradient: through the reference
                 out = interp_torch(xn.detach(), table, layout)
                 (gt,) = torch.autograd.grad(out, table, g, create_graph=True)
-            return gx, gt, None, None
+            return gx, gt, None, None, None
         g_np = g.contiguous().numpy()
         xn_np = xn.detach().contiguous().numpy()
         gx = gt = None
@@ -337,8 +340,10 @@ class MultilinearFn(torch.autograd.Function):
                 generic.interp_backward_x(xn_np, table.detach().numpy(), g_np, *_meta(layout), gx64)
             gx = torch.from_numpy(gx64).to(xn.dtype)
         if need_t:
+            if ctx.skip_zero:  # TouchedRows.GRADIENT: only the points that carry gradient touch rows
+                xn_np, g_np = nonzero_points(xn_np, g_np)
             gt = table_grad_numba(xn_np, g_np, layout, tuple(table.shape), table.dtype, ctx.sparse)
-        return gx, gt, None, None
+        return gx, gt, None, None, None
 
 
 def _forward_with_jac(xn_np: np.ndarray, tab_np: np.ndarray, layout: TableLayout
@@ -450,14 +455,20 @@ class MultilinearJacFn(torch.autograd.Function):
 
 
 def multilinear(xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, backend: str = "auto",
-                sparse: bool | None = None) -> torch.Tensor:
+                sparse: bool | None = None, touched: str = "read") -> torch.Tensor:
     """Multilinear lookup of E entries: xn (N,3) in [0,1] (clamped; ±inf too), table (M,F) -> (N,E,F).
 
     A point with a NaN coordinate gets NaN features and no gradient (a loss over it turns NaN, which the SLAM loop
     treats as a failed step), on every backend.
     backend: "numba" (fused CPU kernel), "torch" (reference, any device) or "auto" (numba on CPU tensors).
     sparse: table-gradient layout of the fused path; None = sparse iff M > DENSE_GRAD_MAX_ROWS.
+    touched: rows of the fused path's table gradient (`TouchedRows`): "read" every row read with a non-zero weight
+    (a zero-valued gradient row included), "gradient" only the rows some point with a non-zero output gradient
+    reads (the torch path's dense gradient gives the optimiser that set: its non-zero rows); the second-order
+    lookup inside ``second_order()`` keeps "read".
     """
+    if touched not in ("read", "gradient"):
+        raise ValueError(f"unknown touched rows {touched!r} (choices: read, gradient)")
     if backend == "auto":
         backend = "numba" if table.device.type == "cpu" else "torch"
     if backend not in ("torch", "numba"):
@@ -465,14 +476,15 @@ def multilinear(xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, back
     if xn.dim() != 2 or xn.shape[-1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {tuple(xn.shape)}")
     if xn.device.type == "cpu" and not bool(torch.isnan(xn).any()):  # (on a GPU: no host sync to find out)
-        return _lookup(xn, table, layout, backend, sparse)
+        return _lookup(xn, table, layout, backend, sparse, touched == "gradient")
     nan = torch.isnan(xn).any(dim=1)
-    out = _lookup(torch.where(nan[:, None], torch.zeros_like(xn), xn), table, layout, backend, sparse)
+    out = _lookup(torch.where(nan[:, None], torch.zeros_like(xn), xn), table, layout, backend, sparse,
+                  touched == "gradient")
     return out.masked_fill(nan[:, None, None], float("nan"))
 
 
-def _lookup(xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, backend: str, sparse: bool | None
-            ) -> torch.Tensor:
+def _lookup(xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, backend: str, sparse: bool | None,
+            skip_zero: bool = False) -> torch.Tensor:
     if backend == "torch":
         return interp_torch(xn.to(table.dtype), table, layout)
     if table.device.type != "cpu" or xn.device.type != "cpu":
@@ -486,4 +498,4 @@ def _lookup(xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, backend:
         xn = xn.detach()
     elif _SCOPES.second_order and xn.requires_grad:
         return MultilinearJacFn.apply(xn, table, layout, bool(sparse))[0]
-    return MultilinearFn.apply(xn, table, layout, bool(sparse))
+    return MultilinearFn.apply(xn, table, layout, bool(sparse), skip_zero)

@@ -7,6 +7,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+from inrslam.fields.config import TouchedRows
+
 
 class MeshVoxels(str, enum.Enum):
     """Voxels marching cubes runs over: every allocated one, or only those whose 8 priors were initialised."""
@@ -28,6 +30,8 @@ class EheConfig:
     feature_dim: int = 2  # features per vertex of the dense level
     hidden_dim: int = 32  # hidden width of the two bias-free decoders (SDF residual, colour)
     grid_init: float = 1e-4  # dense-level features init U(-grid_init, grid_init)
+    touched_rows: TouchedRows = TouchedRows.GRADIENT  # dense-level rows one Adam step updates: gradient = rows with a
+    # non-zero gradient (samples no loss term reaches are skipped in the backward) | read = every row read (docs/ehe.md)
     truncation: float = 0.05  # SDF truncation T, metres (SDF values are in units of T)
     step: float = 0.1  # sample spacing inside hit voxels, as a fraction of voxel_size (0.1 -> 1 cm)
     max_hits: int = 10  # voxels a ray may pass through (nearest first)

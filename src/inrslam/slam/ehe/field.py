@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from inrslam.fields.config import KernelChoice
+from inrslam.fields.config import KernelChoice, TouchedRows
 from inrslam.fields.encoders import GridEncoder
 from inrslam.fields.models import FieldOutput, grid_decoder, run_grid_decoder
 from inrslam.slam.ehe.config import EheConfig
@@ -40,6 +40,7 @@ class EheField(nn.Module):
         self.voxels = VoxelGrid(b, cfg.voxel_size, kernel)
         self.grid = GridEncoder(b[:, 1] - b[:, 0], cfg.fine_cell, cfg.fine_cell, 1, cfg.feature_dim, hashed=False,
                                 log2_hashmap_size=19, faithful=False, init=cfg.grid_init, kernel=kernel)
+        self.grid.touched = TouchedRows(cfg.touched_rows)
         self.sdf_net = grid_decoder(cfg.feature_dim + 3, cfg.hidden_dim, 1)
         self.rgb_net = grid_decoder(3 + cfg.feature_dim, cfg.hidden_dim, 3)
 

@@ -86,32 +86,49 @@ def _forward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, rows
 def _backward(x, origin, extent, res, scale, offset, lo, hi, stride, hashed, rows, row_off, f, p, w1t, w2, g,
               block, g_prior, g_f, gw1t_parts, gw2_parts):  # pragma: no cover - numba
     """For the output gradient g (N,): g_prior (V, 1) (pre-zeroed, += w_c g), g_f (N, F) and per-block weight
-    gradients gw1t_parts (B, I, H), gw2_parts (B, 1, H). Samples with a NaN coordinate contribute nothing."""
+    gradients gw1t_parts (B, I, H), gw2_parts (B, 1, H) (pre-zeroed). Samples with a NaN coordinate contribute
+    nothing; samples with a zero gradient contribute zeros and are left out of the block's products (on EHE's rays
+    about a third: behind the surface, where no loss term reaches)."""
     n_pts = x.shape[0]
     nf = f.shape[1]
+    n_in = w1t.shape[0]
     w1f = np.ascontiguousarray(w1t[:nf])  # (F, H): the rows of the feature inputs
     for b in prange((n_pts + block - 1) // block):
         n0 = b * block
         n1 = min(n_pts, n0 + block)
-        m = n1 - n0
-        xin = np.empty((m, w1t.shape[0]), dtype=w1t.dtype)
-        _inputs(x, f, p, n0, n1, xin)
+        idx = np.empty(n1 - n0, np.int64)
+        m = 0
+        for n in range(n0, n1):
+            g_f[n, :] = 0.0
+            if g[n] != 0.0 and _finite3(x, n):  # (a NaN gradient is kept: it reaches the weights, as in torch)
+                idx[m] = n
+                m += 1
+        if m == 0:
+            continue
+        xin = np.empty((m, n_in), dtype=w1t.dtype)
         gb = np.empty((m, 1), dtype=w1t.dtype)
         for k in range(m):
-            gb[k, 0] = g[n0 + k] if _finite3(x, n0 + k) else 0.0
+            n = idx[k]
+            for i in range(nf):
+                xin[k, i] = f[n, i]
+            for i in range(p.shape[1]):
+                xin[k, nf + i] = p[n, i]
+            gb[k, 0] = g[n]
         h = np.dot(xin, w1t)
         gh = np.dot(gb, w2)
         relu_mask_inplace(h, gh)
-        g_f[n0:n1] = np.dot(gh, w1f.T)
+        gfb = np.dot(gh, w1f.T)
+        for k in range(m):
+            g_f[idx[k], :] = gfb[k, :]
         gw1t_parts[b] = np.dot(xin.T, gh)
         gw2_parts[b] = np.dot(gb.T, h)
     for n in range(n_pts):  # the priors: one thread, sample order
-        if not _finite3(x, n):
+        gn = np.float64(g[n])
+        if gn == 0.0 or not _finite3(x, n):  # a zero gradient adds ±0 to a row (the same sums): skipped
             continue
         r0, r1, r2, r3, r4, r5, r6, r7, wx, wy, wz = _corners(x, n, origin, extent, res, scale, offset, lo, hi,
                                                               stride, hashed, rows, row_off)
         w = tri_weights(wx, wy, wz)
-        gn = np.float64(g[n])
         g_prior[r0, 0] += w[0] * gn
         g_prior[r1, 0] += w[1] * gn
         g_prior[r2, 0] += w[2] * gn
