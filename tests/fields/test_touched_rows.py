@@ -10,10 +10,10 @@ import torch
 
 from inrslam.fields.config import TouchedRows
 from inrslam.fields.encoders import GridEncoder
-from inrslam.fields.kernels import TableLayout, interp_torch, multilinear
+from inrslam.fields.kernels import TableLayout, function, interp_torch, multilinear
 from inrslam.fields.kernels.compact import nonzero_points, nonzero_points_torch
 from inrslam.fields.optim import make_optimizer
-from inrslam.fields.resolution import grid_entries
+from inrslam.fields.resolution import grid_entries, plane_entries, plane_sizes
 
 EXTENT = np.array([1.2, 1.0, 0.8])
 
@@ -59,9 +59,18 @@ def _table_grad(touched: str, layout, table, x, cot, backend="numba", sparse=Tru
     return t.grad
 
 
-@pytest.mark.parametrize("sparse", [True, False])
-def test_gradient_rows_are_the_rows_of_points_with_a_gradient(sparse):
-    layout = TableLayout.build(grid_entries(EXTENT, 0.3, 0.1, 2, False, 19, False))
+LAYOUTS = {"dense": lambda: grid_entries(EXTENT, 0.3, 0.1, 2, False, 19, False),
+           "planes": lambda: plane_entries(plane_sizes(EXTENT, 0.3, 0.1, 2, False), False)}
+
+
+@pytest.mark.parametrize("name", list(LAYOUTS))
+@pytest.mark.parametrize("sparse, accumulator", [(True, True), (True, False), (False, False)])
+def test_gradient_rows_are_the_rows_of_points_with_a_gradient(name, sparse, accumulator, monkeypatch):
+    """Every fused backward: the accumulator kernel, the slot kernels of large tables
+    (forced here by a zero accumulator budget), the generic (plane) kernels and the dense gradient."""
+    if not accumulator:
+        monkeypatch.setattr(function, "ACCUMULATOR_MAX_BYTES", 0)
+    layout = TableLayout.build(LAYOUTS[name]())
     table = torch.randn(layout.total_rows, 2)
     x = torch.rand(300, 3, generator=torch.Generator().manual_seed(3))
     cot = _gradient_with_zero_runs(300, (layout.n_entries, 2), 4)

@@ -135,9 +135,14 @@ def _level_major(g: np.ndarray, layout: TableLayout) -> np.ndarray:
     return gT
 
 
-def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, dtype, sparse: bool) -> torch.Tensor:
-    """∂L/∂T from the fused kernel: sparse COO with unique rows (``sparse``) or dense (M,F)."""
+def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, dtype, sparse: bool,
+                     skip_zero: bool = False) -> torch.Tensor:
+    """∂L/∂T from the fused kernel: sparse COO with unique rows (``sparse``) or dense (M,F). ``skip_zero``
+    (`TouchedRows.GRADIENT`): only the points whose output gradient is not all zero reach the kernels
+    (`compact.nonzero_points`), so the others touch no row."""
     M, F = shape
+    if skip_zero:
+        xn, g = nonzero_points(xn, g)
     if not sparse:
         grad = torch.zeros(M, F, dtype=dtype)
         if layout.trilinear:
@@ -340,9 +345,7 @@ class MultilinearFn(torch.autograd.Function):
                 generic.interp_backward_x(xn_np, table.detach().numpy(), g_np, *_meta(layout), gx64)
             gx = torch.from_numpy(gx64).to(xn.dtype)
         if need_t:
-            if ctx.skip_zero:  # TouchedRows.GRADIENT: only the points that carry gradient touch rows
-                xn_np, g_np = nonzero_points(xn_np, g_np)
-            gt = table_grad_numba(xn_np, g_np, layout, tuple(table.shape), table.dtype, ctx.sparse)
+            gt = table_grad_numba(xn_np, g_np, layout, tuple(table.shape), table.dtype, ctx.sparse, ctx.skip_zero)
         return gx, gt, None, None, None
 
 
