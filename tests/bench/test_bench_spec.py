@@ -117,8 +117,8 @@ def test_shipped_specs_load_and_use_registered_names():
     from inrslam.fields.registry import ENCODINGS
     from inrslam.rendering import RENDERERS
 
-    counts = {"tiny": 4, "builtin_small": 7 * 2 * 3, "room_fxg": 5 * 2, "builtin_fxg": 5 * 2 * 2, "7scenes_fxg": 5 * 2, "replica": 5 * 3 * 8, "neuralrgbd": 6 * 3 * 7,
-              "presets_builtin": 2 * 1 * 4 * 3}
+    counts = {"tiny": 4, "builtin_small": 7 * 2 * 3, "room_fxg": 5 * 2, "room_fxg_gt": 5 * 2, "builtin_fxg": 5 * 2 * 2,
+              "7scenes_fxg": 5 * 2, "replica": 5 * 3 * 8, "neuralrgbd": 6 * 3 * 7, "presets_builtin": 2 * 1 * 4 * 3}
     assert sorted(p.stem for p in SPEC_DIR.glob("*.yaml")) == sorted(counts)
     for name, n in counts.items():
         spec = load_spec(name)
@@ -129,6 +129,9 @@ def test_shipped_specs_load_and_use_registered_names():
     first = expand(load_spec("presets_builtin"))[:3]  # room x dense x direct x {paper, accurate, gicp}
     inits = {r.preset: resolve_config(r).slam.init.value for r in first}
     assert inits == {"paper": "const_velocity", "accurate": "gicp", "gicp": "gicp"}
+    gt = [resolve_config(r) for r in expand(load_spec("room_fxg_gt"))]
+    assert {c.slam.poses for c in gt} == {"gt"} and {(c.field.encoding, c.render.name) for c in gt} == {
+        (resolve_config(r).field.encoding, resolve_config(r).render.name) for r in expand(load_spec("room_fxg"))}
     tiny = load_spec("tiny")
     assert tiny.presets == ["quick"] and len(tiny.scenes) == 1 and tiny.scenes[0].path.startswith("builtin:")
 
