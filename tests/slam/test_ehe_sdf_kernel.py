@@ -156,8 +156,8 @@ def test_zero_gradient_samples_are_left_out_with_the_same_gradients():
     for name in g_r:
         scale = float(g_r[name].abs().max())
         torch.testing.assert_close(g_f[name], g_r[name], rtol=1e-4, atol=1e-5 * max(scale, 1.0), msg=name)
-    # and without any gradient nothing reaches the priors or the decoder
     assert float(g_r["voxels.priors.table"].abs().sum()) > 0 and float(g_r["sdf_net.0.weight"].abs().sum()) > 0
+    # and without any gradient nothing reaches the priors or the decoder
     all_zero = torch.zeros(x.shape[0])
     _, g0 = sdf_and_grads(random_field(7), x, all_zero)
     assert float(g0["voxels.priors.table"].abs().sum()) == 0 and float(g0["sdf_net.0.weight"].abs().sum()) == 0
