@@ -320,3 +320,43 @@ def test_frames_with_a_repeated_colour_or_depth_are_not_refined_photometrically_
     assert again.index == 5 and repeated_streams(again, system.dataset[5]) == "both"
     _, off = run(False)
     assert all("stale" not in r for r in off) and [r["photo_target"] for r in off] == [0, 1, 2, 3, 4, 5]
+
+
+@pytest.fixture(scope="module")
+def track_refs3(tmp_path_factory):
+    """With track_refs 3 each frame is aligned onto its photometric keyframe and the two before it at once."""
+    return run(tmp_path_factory, "track_refs3", "accurate", RENEW + ["slam.photo.track_refs=3"])
+
+
+def test_frames_are_aligned_onto_several_photometric_keyframes_at_once_when_asked(renew, track_refs3,
+                                                                                   tmp_path_factory):
+    single = run(tmp_path_factory, "track_refs1", "accurate", RENEW + ["slam.photo.track_refs=1"])
+    one, two, three = tracks(single), tracks(renew), tracks(track_refs3)  # accurate's own setting is 2
+    assert all("photo_refs" not in r for r in one)  # track_refs 1: the key is not logged
+    # a keyframe on every frame: frame 1 has keyframe 0 only, frame 2 keyframes 0-1, then 2 or 3 at once
+    assert [r["photo_refs"] for r in two] == [min(2, r["frame"]) for r in two]
+    assert [r["photo_refs"] for r in three] == [min(3, r["frame"]) for r in three]
+    assert [r["photo_target"] for r in three] == [r["frame"] - 1 for r in three]
+    assert all("fallback" not in r for r in two + three)
+    # frame 1 sees one reference in every run: the same refinement, to the bit; then the runs part
+    assert one[0]["photo_shift_mm"] == two[0]["photo_shift_mm"] == three[0]["photo_shift_mm"]
+    assert two[1]["photo_shift_mm"] == three[1]["photo_shift_mm"] != one[1]["photo_shift_mm"]
+    assert two[2]["photo_shift_mm"] != three[2]["photo_shift_mm"]
+    for out in (renew, track_refs3):
+        _, est = read_tum(out / "trajectory.txt")
+        _, gt = read_tum(out / "trajectory_gt.txt")
+        assert np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1).max() < 0.03  # still tracks (noisy depth)
+
+
+def test_interrupted_run_aligned_onto_several_keyframes_resumes_exactly(track_refs3, tmp_path):
+    over = SMALL + RENEW + ["slam.photo.track_refs=3"]  # track_refs3's settings
+    out = tmp_path / "interrupted"
+
+    def stop_after_frame_3(i, n, info):
+        if i == 3:
+            raise KeyboardInterrupt  # the older keyframes' pyramids are rebuilt from the dataset on resume
+
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(load_config(preset="accurate", overrides=over), out, progress=stop_after_frame_3)
+    resume_slam(out)
+    assert (out / "trajectory.txt").read_text() == (track_refs3 / "trajectory.txt").read_text()

@@ -193,3 +193,42 @@ def test_affine_light_absorbs_an_exposure_change_that_biases_the_plain_alignment
     fitted, res = error_mm(PhotoConfig(enabled=True, grad_threshold=0.002, iters=20, huber=1.0, affine_light=True))
     assert fitted < 1.0 < plain  # 1 mm of a 3.7 cm motion; without the brightness model it is off
     assert res.light == pytest.approx((-0.3, 0.08), abs=5e-3)
+
+
+def test_older_references_join_the_same_steps_and_pull_the_pose_towards_what_they_see():
+    c2w_b = C2W_A @ motion([0.01, -0.03, 0.01, 0.02, -0.01, 0.01])  # the current frame
+    c2w_c = C2W_A @ motion([-0.02, 0.01, 0.02, -0.01, 0.02, 0.0])  # an older keyframe elsewhere on the wall
+    ref, cur = pyramids(c2w_b)
+    older = build_pyramid(*wall_view(c2w_c), K, 3)
+    cfg = PhotoConfig(enabled=True, grad_threshold=0.002, iters=20)
+    # the newest keyframe's pose estimate is 6 mm off (a chain's error); the older one's is right
+    c2w_a_est = C2W_A @ motion([0.006, 0.0, 0.0, 0.0, 0.0, 0.0])
+    start = torch.eye(4, dtype=torch.float64)  # current frame believed at the newest keyframe's pose
+    T_ic = torch.as_tensor(np.linalg.inv(c2w_a_est) @ c2w_c)
+    gen = torch.Generator
+
+    def error_mm(res):  # the current frame's world position, placed by the newest keyframe's estimated pose
+        est = c2w_a_est @ np.linalg.inv(res.T_ik.numpy())
+        return 1e3 * np.linalg.norm(est[:3, 3] - c2w_b[:3, 3])
+
+    alone = align_photometric(ref, cur, start, cfg, gen().manual_seed(0))
+    joint = align_photometric(ref, cur, start, cfg, gen().manual_seed(0), others=[(older, T_ic)])
+    assert alone.fallback is None and joint.fallback is None
+    assert error_mm(alone) == pytest.approx(6.0, abs=0.5)  # alone it inherits the keyframe's error
+    assert 1.0 < error_mm(joint) < 0.75 * error_mm(alone)  # the two keyframes' residuals meet between them
+    # with no older reference the alignment is the single one, to the bit (the same random draws)
+    none = align_photometric(ref, cur, start, cfg, gen().manual_seed(0), others=[])
+    assert torch.equal(none.T_ik, alone.T_ik) and none.rms == alone.rms
+
+
+def test_with_an_older_reference_only_the_newest_sets_the_reported_rms_and_points():
+    c2w_b = C2W_A @ motion([0.02, 0.0, 0.01, 0.0, 0.01, 0.0])
+    ref, cur = pyramids(c2w_b)
+    flat = build_pyramid(np.full((INTR.height, INTR.width, 3), 0.5), wall_view(C2W_A)[1], K, 3)
+    cfg = PhotoConfig(enabled=True, grad_threshold=0.002, iters=20)
+    start = torch.eye(4, dtype=torch.float64)
+    alone = align_photometric(ref, cur, start, cfg, torch.Generator().manual_seed(0))
+    # an untextured older reference adds no residual (no gradient): the same alignment, the same report
+    joint = align_photometric(ref, cur, start, cfg, torch.Generator().manual_seed(0), others=[(flat, start)])
+    assert joint.n_points == alone.n_points and joint.rms == pytest.approx(alone.rms)
+    assert torch.allclose(joint.T_ik, alone.T_ik, atol=1e-9)

@@ -99,6 +99,8 @@ class PhotoConfig:
     kf_rms_factor: float = 0.0  # ... or once the residual RMS exceeds this x the first one onto it (0 = off)
     kf_refs: int = 1  # a new photometric keyframe's pose: the mean of its alignments onto the last kf_refs
     # keyframes (1 = only the one it was aligned onto; more: off in every preset, docs/accurate.md)
+    track_refs: int = 1  # each frame is aligned onto the last track_refs photometric keyframes at once (their
+    # residuals in one Gauss-Newton; 1 = the current one only; `accurate`: 2, docs/accurate.md)
     affine_light: bool = False  # also fit an affine brightness change (1 + a) I + b of the reference (exposure)
     gicp_prior: float = 0.0  # weight of GICP's pose and Hessian as a prior of the alignment (0 = off; 1 = each
     # residual's own variance; docs/accurate.md)

@@ -154,7 +154,8 @@ def twist_small(D: Tensor) -> Tensor:
 
 def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor, cfg,
                       generator: torch.Generator | None = None,
-                      prior: tuple[Tensor, Tensor, float] | None = None) -> PhotoResult:
+                      prior: tuple[Tensor, Tensor, float] | None = None,
+                      others: list[tuple[list[PhotoLevel], Tensor]] | None = None) -> PhotoResult:
     """Coarse-to-fine Gauss-Newton of T_ik (reference camera -> current camera, (4, 4)) on the photometric residuals.
 
     With a `prior` (T_p (4, 4), its information Lambda (6, 6) in the left twist of T_ik, weight lam) the cost gains
@@ -163,6 +164,9 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
     the pose towards T_p where that is well constrained and leaves it free where it is not (a degenerate view).
     With `cfg.affine_light` the reference's intensities are (1 + alpha) I_k + beta, alpha and beta solved with the
     twist (8 unknowns; dr/dalpha = -I_k, dr/dbeta = -1): an exposure change is not read as motion.
+    `others` (pyramid, T_jk) add the residuals of more references (older keyframes) to the same steps: a left twist
+    of T_ik is a left twist of the current camera's world -> camera pose, so every reference's T_ij takes the same
+    update (slam.photo.track_refs). `rms` and the point count stay the first reference's.
 
     Args:
         ref, cur: pyramids of the reference keyframe (with depth) and the current frame (`build_pyramid`).
@@ -173,9 +177,11 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
     T = start.clone()
     light = torch.zeros(2, dtype=torch.float64)  # (alpha, beta): I_k is seen as (1 + alpha) I_k + beta
     n_par = 8 if getattr(cfg, "affine_light", False) else 6
+    more = [(pyr, T_j.detach().to(torch.float64).clone()) for pyr, T_j in (others or [])]
     total, n_used, rms = 0, 0, float("nan")
     for lvl in reversed(range(len(ref))):
         X_k, I_k = reference_points(ref[lvl], cfg.grad_threshold, cfg.max_points, generator)
+        X_more = [reference_points(pyr[lvl], cfg.grad_threshold, cfg.max_points, generator) for pyr, _ in more]
         for _ in range(cfg.iters):
             r, J, valid = photometric_residuals(cur[lvl], X_k, I_k, T)
             n_used = int(valid.sum())
@@ -189,6 +195,12 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
             H = (J * w[:, None]).T @ J
             b = (J * w[:, None]).T @ r
             rms = float(torch.sqrt((w * r * r).sum() / w.sum().clamp_min(1e-12)))
+            for (X_j, I_j), (_, T_j) in zip(X_more, more):  # older references: the twist's block only
+                r_j, J_j, valid_j = photometric_residuals(cur[lvl], X_j, I_j, T_j)
+                a_j = r_j.abs()
+                w_j = torch.where(a_j <= cfg.huber, torch.ones_like(a_j), cfg.huber / a_j.clamp_min(1e-12)) * valid_j
+                H[:6, :6] = H[:6, :6] + (J_j * w_j[:, None]).T @ J_j
+                b[:6] = b[:6] + (J_j * w_j[:, None]).T @ r_j
             total += 1
             if prior is not None:
                 T_p, info, lam = prior
@@ -203,6 +215,7 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
                 return PhotoResult(start, total, n_used, rms, "photo_nan")
             xi = step[:6]
             T = se3_exp(xi) @ T
+            more = [(pyr, se3_exp(xi) @ T_j) for pyr, T_j in more]
             if n_par == 8:
                 light = light + step[6:]
             if float(xi.norm()) < cfg.tol:

@@ -407,8 +407,11 @@ class SlamSystem:
         prior = None
         if pc.gicp_prior > 0 and "init_fallback" not in rec and self._gicp_information is not None:
             prior = (T_ik.clone(), torch.as_tensor(self._gicp_information), pc.gicp_prior)  # T_ik is GICP's here
+        T_iw = torch.linalg.inv(pred.double().cpu())
+        others = [(self._photo_pyramid(j), T_iw @ self.est[j].double().cpu())
+                  for j in self.state.photo_kfs[-pc.track_refs:-1]] if pc.track_refs > 1 else None
         res = align_photometric(self._photo_pyramid(k), cur, T_ik, pc, torch.Generator().manual_seed(self.cfg.seed + i),
-                                prior)
+                                prior, others)
         c2w = T_k @ torch.linalg.inv(res.T_ik)
         fallback = res.fallback
         shift = float(torch.linalg.norm(c2w[:3, 3] - pred[:3, 3].double().cpu()))
@@ -424,6 +427,8 @@ class SlamSystem:
         rec.update(photo_iters=res.iters, photo_points=res.n_points, photo_target=k,
                    photo_rms=round(res.rms, 5) if math.isfinite(res.rms) else None,
                    photo_shift_mm=round(shift * 1e3, 3) if math.isfinite(shift) else None)
+        if others is not None:
+            rec["photo_refs"] = 1 + len(others)  # keyframes aligned onto at once (slam.photo.track_refs)
         if res.light is not None:
             rec["photo_light"] = [round(res.light[0], 4), round(res.light[1], 4)]
         if fallback:
@@ -465,7 +470,7 @@ class SlamSystem:
             s.photo_kfs.append(i)
             s.photo_kf_rms = 0.0
             self._photo_pyrs[i] = pyramid
-            keep = set(s.photo_kfs[-pc.kf_refs:])
+            keep = set(s.photo_kfs[-max(pc.kf_refs, pc.track_refs):])
             self._photo_pyrs = {j: p for j, p in self._photo_pyrs.items() if j in keep}
 
     def _average_keyframe_pose(self, i: int, pyramid: list[PhotoLevel], rec: dict) -> None:
