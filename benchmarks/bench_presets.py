@@ -3,6 +3,8 @@ target <= 2x paper). Prints a table and the ratios; never asserted in tests.
 
     python benchmarks/bench_presets.py                           # 40 frames of builtin:room, every F in --encodings
     python benchmarks/bench_presets.py --encodings dense hash --frames 60 --data builtin:cluttered
+    python benchmarks/bench_presets.py --frames 30 --data ../shared/data/7scenes_redkitchen --set data.dataset=7scenes \
+        data.bounds_frames=40                                    # config overrides for every preset
 
 Per-frame time = (all tracking time + all mapping time) / tracked frames: the steady-state cost of a frame (tracking
 every frame, mapping every 5th). Initialisation (same in every preset) is excluded and printed apart.
@@ -18,7 +20,7 @@ import time
 PRESETS = ["paper", "accurate", "gicp"]
 
 
-def run_one(preset: str, encoding: str, frames: int, data: str) -> dict:
+def run_one(preset: str, encoding: str, frames: int, data: str, extra: list[str] = ()) -> dict:
     from inrslam.config import load_config
     from inrslam.datasets import open_dataset
     from inrslam.fields.kernels.threads import resolve_threads, thread_scope
@@ -26,7 +28,7 @@ def run_one(preset: str, encoding: str, frames: int, data: str) -> dict:
 
     cfg = load_config(preset=preset, overrides=[
         f"data.path={data}", f"data.max_frames={frames}", f"field.encoding={encoding}", "slam.checkpoint_every=0",
-        "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false"])
+        "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false", *extra])
     with thread_scope(resolve_threads(cfg.threads)):
         system = SlamSystem(cfg, open_dataset(cfg.data))
         t0 = time.perf_counter()
@@ -46,6 +48,7 @@ def main() -> None:
     ap.add_argument("--encodings", nargs="+", default=["dense"])
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--data", default="builtin:room")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides for every preset")
     args = ap.parse_args()
     import torch
 
@@ -55,7 +58,7 @@ def main() -> None:
     for enc in args.encodings:
         rows = {}
         for preset in args.presets:
-            r = rows[preset] = run_one(preset, enc, args.frames, args.data)
+            r = rows[preset] = run_one(preset, enc, args.frames, args.data, args.set)
             print(f"{preset:<9} {enc:<9} {r['render']:<8} {r['track_ms']:>15.0f} {r['map_ms']:>12.0f} "
                   f"{r['per_frame_s']:>8.3f} {r['init_s']:>7.1f}", flush=True)
         if "paper" in rows:

@@ -14,6 +14,7 @@ from inrslam.slam.config import PhotoConfig
 from inrslam.slam.photometric import (
     align_photometric,
     build_pyramid,
+    huber_weights,
     jump_kept,
     photometric_residuals,
     reference_points,
@@ -232,3 +233,12 @@ def test_with_an_older_reference_only_the_newest_sets_the_reported_rms_and_point
     joint = align_photometric(ref, cur, start, cfg, torch.Generator().manual_seed(0), others=[(flat, start)])
     assert joint.n_points == alone.n_points and joint.rms == pytest.approx(alone.rms)
     assert torch.allclose(joint.T_ik, alone.T_ik, atol=1e-9)
+
+
+def test_huber_weights_are_one_inside_the_threshold_and_threshold_over_residual_beyond():
+    r = torch.tensor([0.0, 0.03, -0.05, 0.1, -0.2, 0.4], dtype=torch.float64)
+    valid = torch.tensor([True, True, True, True, True, False])
+    w = huber_weights(r, valid, 0.05)
+    assert torch.allclose(w, torch.tensor([1.0, 1.0, 1.0, 0.5, 0.25, 0.0], dtype=torch.float64))
+    # w r is the Huber loss's derivative: huber sign(r) beyond the threshold
+    assert torch.allclose((w * r)[3:5], torch.tensor([0.05, -0.05], dtype=torch.float64))

@@ -152,6 +152,13 @@ def twist_small(D: Tensor) -> Tensor:
     return torch.cat([D[:3, 3], omega])
 
 
+def huber_weights(r: Tensor, valid: Tensor, huber: float) -> Tensor:
+    """IRLS weights (N,) of residuals r (N,) under a Huber loss of threshold `huber`: 1 where |r| <= huber, else
+    huber / |r|; 0 where not `valid`. Example: huber 0.05, r = 0.1 -> 0.5."""
+    a = r.abs()
+    return torch.where(a <= huber, torch.ones_like(a), huber / a.clamp_min(1e-12)) * valid
+
+
 def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor, cfg,
                       generator: torch.Generator | None = None,
                       prior: tuple[Tensor, Tensor, float] | None = None,
@@ -164,9 +171,10 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
     the pose towards T_p where that is well constrained and leaves it free where it is not (a degenerate view).
     With `cfg.affine_light` the reference's intensities are (1 + alpha) I_k + beta, alpha and beta solved with the
     twist (8 unknowns; dr/dalpha = -I_k, dr/dbeta = -1): an exposure change is not read as motion.
-    `others` (pyramid, T_jk) add the residuals of more references (older keyframes) to the same steps: a left twist
-    of T_ik is a left twist of the current camera's world -> camera pose, so every reference's T_ij takes the same
-    update (slam.photo.track_refs). `rms` and the point count stay the first reference's.
+    `others`, pairs (pyramid, T_ij) of more references j (older keyframes; T_ij: camera j -> current camera), add
+    their residuals to the same steps: a left twist of T_ik is a left twist of the current camera's world -> camera
+    pose, so every T_ij takes the same update (slam.photo.track_refs). `rms` and the point count stay the first
+    reference's.
 
     Args:
         ref, cur: pyramids of the reference keyframe (with depth) and the current frame (`build_pyramid`).
@@ -190,15 +198,13 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
             if n_par == 8:  # affine brightness: r = I_i(pi(X_i)) - (1 + alpha) I_k - beta
                 r = (r - light[0] * I_k - light[1]) * valid
                 J = torch.cat([J, -I_k[:, None] * valid[:, None], -valid[:, None].to(J.dtype)], dim=1)
-            a = r.abs()
-            w = torch.where(a <= cfg.huber, torch.ones_like(a), cfg.huber / a.clamp_min(1e-12)) * valid
+            w = huber_weights(r, valid, cfg.huber)
             H = (J * w[:, None]).T @ J
             b = (J * w[:, None]).T @ r
             rms = float(torch.sqrt((w * r * r).sum() / w.sum().clamp_min(1e-12)))
             for (X_j, I_j), (_, T_j) in zip(X_more, more):  # older references: the twist's block only
                 r_j, J_j, valid_j = photometric_residuals(cur[lvl], X_j, I_j, T_j)
-                a_j = r_j.abs()
-                w_j = torch.where(a_j <= cfg.huber, torch.ones_like(a_j), cfg.huber / a_j.clamp_min(1e-12)) * valid_j
+                w_j = huber_weights(r_j, valid_j, cfg.huber)
                 H[:6, :6] = H[:6, :6] + (J_j * w_j[:, None]).T @ J_j
                 b[:6] = b[:6] + (J_j * w_j[:, None]).T @ r_j
             total += 1
