@@ -403,11 +403,11 @@ class SlamSystem:
         k = self.state.photo_kfs[-1]
         cur = self._pyramid(frame, smooth)
         T_k = self.est[k].double().cpu()
-        T_ik = torch.linalg.inv(pred.double().cpu()) @ T_k
+        T_iw = torch.linalg.inv(pred.double().cpu())  # world -> current camera, from the starting pose
+        T_ik = T_iw @ T_k
         prior = None
         if pc.gicp_prior > 0 and "init_fallback" not in rec and self._gicp_information is not None:
             prior = (T_ik.clone(), torch.as_tensor(self._gicp_information), pc.gicp_prior)  # T_ik is GICP's here
-        T_iw = torch.linalg.inv(pred.double().cpu())
         others = [(self._photo_pyramid(j), T_iw @ self.est[j].double().cpu())
                   for j in self.state.photo_kfs[-pc.track_refs:-1]] if pc.track_refs > 1 else None
         res = align_photometric(self._photo_pyramid(k), cur, T_ik, pc, torch.Generator().manual_seed(self.cfg.seed + i),
