@@ -10,7 +10,10 @@ Rows: `paper` as it runs (fused lookups, numba sampler: bit-identical to the tor
 (the reference, for its share), then `field.decoder_kernel=numba`, then also `loss.kernel=numba`. For the F with
 planes (tri-plane, TensoRF, the hybrids) also `paper` and every fused kernel with the per-level plane sums / plane x
 line products in autograd (the references of `fields.kernels.combine`, bit-identical to the kernels), for their
-share.
+share. For the MLP (whose iteration is its trunk's matrix products, which no fused kernel shortens) also `paper`
+with `field.mlp.precision=bfloat16` (its hidden layers and heads under bfloat16 autocast).
+
+    python benchmarks/bench_iteration.py --encoding mlp --reps 5
 """
 
 from __future__ import annotations
@@ -36,7 +39,9 @@ def main() -> None:
     import inrslam.slam.model as model_mod
     from inrslam.config import load_config
     from inrslam.datasets import open_dataset
+    from inrslam.fields.config import MlpPrecision
     from inrslam.fields.kernels.combine import plane_sum, vm_product
+    from inrslam.fields.models import MLPField
     from inrslam.rendering.sampling import sample_depths
     from inrslam.slam.frame_tensors import FrameTensors
     from inrslam.slam.system import SlamSystem
@@ -56,13 +61,15 @@ def main() -> None:
     track_rays = ft.sample(cfg.slam.track_pixels, g, cfg.slam.track_edge)
     map_rays = ft.sample(cfg.slam.map_pixels, g)
 
-    def variant(sampler: str, decoder: str, loss: str, combine: str = "auto") -> None:
+    def variant(sampler: str, decoder: str, loss: str, combine: str = "auto", precision: str = "float32") -> None:
         model_mod.sample_depths = functools.partial(sample_depths, kernel=sampler)  # type: ignore[assignment]
         encoders_mod.vm_product = (  # type: ignore[assignment]
             lambda f, levels, faithful, backend: vm_product(f, levels, faithful, combine))
         encoders_mod.plane_sum = lambda f, levels, backend: plane_sum(f, levels, combine)  # type: ignore[assignment]
         model.field.decoder_backend = decoder
         model.cfg.loss.kernel = loss
+        if isinstance(model.field, MLPField):
+            model.field.precision = MlpPrecision(precision)
 
     variants = [("paper (numba sampler)", ("auto", "torch", "torch")), ("torch sampler", ("torch", "torch", "torch")),
                 ("+ decoder_kernel=numba", ("auto", "numba", "torch")),
@@ -70,6 +77,9 @@ def main() -> None:
     if args.encoding in ("triplane", "tensorf", "dense+tri", "hash+tri"):
         variants += [("paper, planes combined autograd", ("auto", "torch", "torch", "torch")),
                      ("all fused, planes autograd", ("auto", "numba", "numba", "torch"))]
+    if args.encoding == "mlp":
+        variants += [("paper, mlp.precision=bfloat16", ("auto", "torch", "torch", "auto", "bfloat16")),
+                     ("+ loss.kernel=numba, bfloat16", ("auto", "torch", "numba", "auto", "bfloat16"))]
 
     def track_iter() -> None:
         pose = c2w.clone().requires_grad_()

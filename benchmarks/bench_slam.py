@@ -5,6 +5,7 @@ reference kernels, in one run (issue #5 speed table). Prints a table; never asse
     python benchmarks/bench_slam.py --encodings dense triplane --frames 20 --kernels numba
     python benchmarks/bench_slam.py --encodings dense hash --kernels numba --decoders torch numba   # fused decoders
     python benchmarks/bench_slam.py --encodings dense hash --kernels numba --decoders numba --losses torch numba
+    python benchmarks/bench_slam.py --encodings mlp --kernels numba --mlp-precisions float32 bfloat16 --frames 8
 
 Per-frame time = (all tracking time + all mapping time) / tracked frames, i.e. the steady-state cost of a frame
 (tracking every frame, mapping every 5th). The 500-iteration initialisation is excluded (reported apart).
@@ -23,7 +24,8 @@ ENCODINGS = ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+t
 
 
 def run_one(encoding: str, kernel: str, frames: int, render: str, data: str, init_iters: int,
-            overrides: Sequence[str] = (), decoder: str = "torch", loss: str = "torch") -> dict:
+            overrides: Sequence[str] = (), decoder: str = "torch", loss: str = "torch",
+            precision: str = "float32") -> dict:
     from inrslam.config import load_config
     from inrslam.datasets import open_dataset
     from inrslam.slam.system import SlamSystem
@@ -32,14 +34,15 @@ def run_one(encoding: str, kernel: str, frames: int, render: str, data: str, ini
         f"data.path={data}", f"data.max_frames={frames}", f"field.encoding={encoding}", f"field.kernel={kernel}",
         f"field.decoder_kernel={decoder}", f"loss.kernel={loss}",
         f"render.name={render}", f"slam.init_iters={init_iters}", "slam.checkpoint_every=0", "mesh.enabled=false",
-        "eval.enabled=false", "output.tensorboard=false", *overrides])
+        "eval.enabled=false", "output.tensorboard=false", *overrides,
+        *([f"field.mlp.precision={precision}"] if encoding == "mlp" else [])])
     system = SlamSystem(cfg, open_dataset(cfg.data))
     t0 = time.perf_counter()
     system.run()
     wall = time.perf_counter() - t0
     tracked = len(system.state.track_ms)
     per_frame = (sum(system.state.track_ms) + sum(system.state.map_ms)) / max(tracked, 1)
-    return {"encoding": encoding, "kernel": kernel, "decoder": decoder, "loss": loss,
+    return {"encoding": encoding, "kernel": kernel, "decoder": decoder, "loss": loss, "precision": precision,
             "track_ms": sum(system.state.track_ms) / max(tracked, 1),
             "map_ms": sum(system.state.map_ms) / max(len(system.state.map_ms), 1), "per_frame_s": per_frame / 1e3,
             "init_ms_per_iter": system.state.init_ms / max(init_iters, 1), "wall_s": wall}
@@ -59,6 +62,8 @@ def main() -> None:
                     "torch autograd or the fused numba kernel)")
     ap.add_argument("--losses", nargs="+", default=["torch"], help="loss.kernel values (compositing + losses: "
                     "torch autograd or the fused numba kernel)")
+    ap.add_argument("--mlp-precisions", nargs="+", default=["float32"], help="field.mlp.precision values (the MLP "
+                    "F only: float32, or its hidden layers and heads in bfloat16)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more config overrides for every run "
                     "(e.g. slam.track_iters=10)")
     args = ap.parse_args()
@@ -73,12 +78,22 @@ def main() -> None:
         for kernel in args.kernels:
             for decoder in args.decoders:
                 for loss in args.losses:
-                    frames = args.frames if kernel != "torch" else args.ref_frames
-                    r = run_one(enc, kernel, frames, args.render, args.data, args.init_iters, args.set, decoder, loss)
-                    rows.append(r)
-                    print(f"{enc:<10} {kernel:<7} {decoder:<7} {loss:<7} {r['track_ms']:>15.0f} {r['map_ms']:>12.0f} "
-                          f"{r['per_frame_s']:>8.2f} {r['init_ms_per_iter']:>11.0f}", flush=True)
+                    for prec in (args.mlp_precisions if enc == "mlp" else ["float32"]):
+                        frames = args.frames if kernel != "torch" else args.ref_frames
+                        r = run_one(enc, kernel, frames, args.render, args.data, args.init_iters, args.set, decoder,
+                                    loss, prec)
+                        rows.append(r)
+                        print(f"{enc if prec == 'float32' else enc + ' bf16':<10} {kernel:<7} {decoder:<7} {loss:<7} "
+                              f"{r['track_ms']:>15.0f} {r['map_ms']:>12.0f} {r['per_frame_s']:>8.2f} "
+                              f"{r['init_ms_per_iter']:>11.0f}", flush=True)
         mine = [r for r in rows if r["encoding"] == enc]
+        by_prec = {r["precision"]: r for r in mine}
+        if "float32" in by_prec and "bfloat16" in by_prec:
+            a, b = by_prec["float32"], by_prec["bfloat16"]
+            print(f"{enc:<10} ratio   float32/bfloat16 MLP: per frame {a['per_frame_s'] / b['per_frame_s']:.2f}x, "
+                  f"tracking {a['track_ms'] / b['track_ms']:.2f}x, mapping {a['map_ms'] / b['map_ms']:.2f}x, "
+                  f"init {a['init_ms_per_iter'] / b['init_ms_per_iter']:.2f}x", flush=True)
+        mine = [r for r in mine if r["precision"] == "float32"]
         if len(args.losses) > 1:
             for kernel in args.kernels:
                 for decoder in args.decoders:

@@ -31,12 +31,22 @@ class TouchedRows(str, enum.Enum):
     # rows are never updated)
 
 
+class MlpPrecision(str, enum.Enum):
+    """Arithmetic of the MLP representation's layers after the first (`field.mlp.precision`)."""
+
+    FLOAT32 = "float32"  # every layer in float32 (the paper's; bit for bit as ever)
+    BFLOAT16 = "bfloat16"  # hidden layers and heads under torch.autocast(bfloat16): products in bfloat16 with
+    # float32 accumulation; the Fourier features, the first layer, the outputs and every parameter stay float32
+
+
 @dataclass
 class MlpConfig:
     """Trunk of the MLP representation (`field.mlp.*`, used when `field.encoding` is mlp)."""
 
     width: int = 256  # width of the trunk
     depth: int = 4  # number of layers of the trunk
+    precision: MlpPrecision = MlpPrecision.FLOAT32  # float32 | bfloat16: the trunk's hidden layers and the heads in
+    # bfloat16 (autocast), 2-3x faster matrix products on CPUs with AVX-512 BF16 and on GPUs (docs/speed.md)
 
 
 @dataclass

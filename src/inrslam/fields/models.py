@@ -7,6 +7,7 @@ gradient along the clamped axes), while the positional encoding γ sees the uncl
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import replace
 from typing import NamedTuple, Optional, cast
 
@@ -15,7 +16,7 @@ import torch
 from torch import nn
 
 from inrslam.errors import ConfigError
-from inrslam.fields.config import Coupling, FieldConfig, KernelChoice
+from inrslam.fields.config import Coupling, FieldConfig, KernelChoice, MlpPrecision
 from inrslam.fields.encoders import GridEncoder, TableEncoder, TensoRFEncoder, TriPlaneEncoder
 from inrslam.fields.gamma import FourierFeatures, make_gamma
 from inrslam.fields.kernels.mlp import mlp2
@@ -173,19 +174,33 @@ class MLPField(Field):
         self.rgb_trunk = mlp_trunk(d, w, cfg.mlp.depth) if self.coupling is Coupling.DECOUPLED else None
         rgb_in = g + d if self.coupling is Coupling.COUPLED else w
         self.rgb_head = nn.Sequential(nn.Linear(rgb_in, h), nn.ReLU(), nn.Linear(h, 3))
+        self.precision = MlpPrecision(cfg.mlp.precision)
+
+    def _trunk(self, trunk: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+        """trunk(x); in bfloat16 mode its first layer runs in float32 (it reads the Fourier features, whose phases
+        carry the position) and the rest under the caller's autocast."""
+        if self.precision is MlpPrecision.FLOAT32:
+            return trunk(x)
+        with torch.autocast(x.device.type, enabled=False):
+            h = trunk[1](trunk[0](x))
+        return trunk[2:](h)
 
     def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
         x = self.freq(p)
-        t = self.trunk(x)
-        h = self.sdf_head(t)
-        if not need_rgb:
-            return FieldOutput(h[:, 0], None)
-        if self.coupling is Coupling.COUPLED:
-            rgb = self.rgb_head(torch.cat([h[:, 1:], x], dim=-1))
-        elif self.coupling is Coupling.DECOUPLED:
-            rgb = self.rgb_head(cast(nn.Sequential, self.rgb_trunk)(x))
-        else:
-            rgb = self.rgb_head(t)
+        low = self.precision is MlpPrecision.BFLOAT16
+        with torch.autocast(x.device.type, dtype=torch.bfloat16) if low else contextlib.nullcontext():
+            t = self._trunk(self.trunk, x)
+            h = self.sdf_head(t)
+            if not need_rgb:
+                rgb = None
+            elif self.coupling is Coupling.COUPLED:
+                rgb = self.rgb_head(torch.cat([h[:, 1:], x.to(h.dtype)], dim=-1))
+            elif self.coupling is Coupling.DECOUPLED:
+                rgb = self.rgb_head(self._trunk(cast(nn.Sequential, self.rgb_trunk), x))
+            else:
+                rgb = self.rgb_head(t)
+        if low:  # outputs back in the caller's dtype (autocast leaves them bfloat16)
+            return FieldOutput(h[:, 0].to(x.dtype), None if rgb is None else rgb.to(x.dtype))
         return FieldOutput(h[:, 0], rgb)
 
 
