@@ -129,6 +129,11 @@ def test_candidates_are_old_near_and_facing_the_same_way():
     assert [c.frame for c in cands] == [40, 30]  # nearest first
     assert cands[0].distance == pytest.approx(0.1) and cands[0].angle == pytest.approx(0.0)
     assert path_length(est, 0, 2) == 0.0 and path_length(est, 29, 31) == pytest.approx(0.6)
+    # keyframes of the tracker's local map (from frame 35 on here) are registered onto already: never candidates
+    near = nearby_keyframes(199, [10, 20, 30, 40, 150], est, LoopConfig(min_gap=100, max_dist=0.8, max_angle=45),
+                            before=35)
+    assert [c.frame for c in near] == [30]
+    assert nearby_keyframes(199, [10, 20, 30, 40], est, LoopConfig(min_gap=100), before=0) == []
 
 
 @pytest.fixture(scope="module")
@@ -358,7 +363,26 @@ def test_closure_fires_at_the_revisit_of_the_loop_scene_and_brings_the_end_back(
     err = np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
     # the closure moved the closing keyframe towards where it really is: it is now closer than the move was long
     assert err[c["frame"]] < c["correction_m"]
+    assert err[0] < 1e-6  # the first keyframe anchors the graph: no closure moves it
 
+
+
+def test_no_loop_onto_the_trackers_own_local_map(tmp_path):
+    """With a local map longer than the loop (every GICP keyframe stays in it), the revisit is registered onto the
+    first keyframes by tracking itself: no loop candidates, and the first frame stays where it started (a loop onto
+    a keyframe of the window used to move the whole window rigidly, the anchoring first keyframe included)."""
+    pytest.importorskip("small_gicp", reason="the accurate preset needs small_gicp")
+    from inrslam.config import load_config
+    from inrslam.io.trajectory import read_tum
+    from inrslam.runner import run_slam
+
+    out = tmp_path / "run"
+    run_slam(load_config(preset="accurate", overrides=["data.path=builtin:loop", "slam.loop_closure=true",
+                                                       "slam.gicp.local_map_keyframes=1000", *LOOP_RUN]), out)
+    assert _records(out, "loop_candidate") == [] and _records(out, "loop_edge") == []
+    _, est = read_tum(out / "trajectory.txt")
+    _, gt = read_tum(out / "trajectory_gt.txt")
+    assert np.linalg.norm(est[0, :3, 3] - gt[0, :3, 3]) < 1e-6
 
 
 def test_interrupted_loop_closure_run_resumes_to_the_uninterrupted_result(loop_run, tmp_path):

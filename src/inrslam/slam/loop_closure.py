@@ -81,13 +81,16 @@ class Candidate:
     overlap: float = 0.0  # `overlap` of the current keyframe's points on its depth
 
 
-def nearby_keyframes(frame: int, keyframes: list[int], est: np.ndarray, cfg: LoopConfig) -> list[Candidate]:
+def nearby_keyframes(frame: int, keyframes: list[int], est: np.ndarray, cfg: LoopConfig,
+                     before: int | None = None) -> list[Candidate]:
     """Keyframes at least `cfg.min_gap` frames older than `frame` whose estimated camera is within `cfg.max_dist`
-    metres and `cfg.max_angle` degrees of it (est: (N, 4, 4) c2w by frame index), nearest first."""
+    metres and `cfg.max_angle` degrees of it (est: (N, 4, 4) c2w by frame index), nearest first. With `before`,
+    only keyframes older than that frame: the first frame of the tracker's local map, whose keyframes every frame is
+    registered onto already (a loop onto one would move the whole window rigidly, the run's first keyframe too)."""
     Tc = est[frame]
     out = []
     for k in keyframes:
-        if frame - k < cfg.min_gap:
+        if frame - k < cfg.min_gap or (before is not None and k >= before):
             continue
         dist = float(np.linalg.norm(est[k][:3, 3] - Tc[:3, 3]))
         ang = view_angle_deg(est[k], Tc)

@@ -654,7 +654,9 @@ class SlamSystem:
         st = s.loop_stats
         kf_ids = list(self.store.frame_ids)
         est = s.est[: i + 1].double().cpu().numpy()
-        near = nearby_keyframes(i, kf_ids[:-1], est, lc)[:4 * lc.candidates]
+        window = (s.gicp_kfs[-g.local_map_keyframes:][0] if self.cfg.slam.init is PoseInit.GICP
+                  and g.target is GicpTarget.LOCAL_MAP else None)  # first frame of the tracker's local map
+        near = nearby_keyframes(i, kf_ids[:-1], est, lc, before=window)[:4 * lc.candidates]
         if not near:
             return
         points = depth_points(frame.depth, frame.intrinsics, g)
@@ -698,8 +700,6 @@ class SlamSystem:
         best = max(verified, key=lambda v: v.fitness)
         s.loops += [{"candidate": v.frame, "frame": i, "T": v.T_cand_cur.tolist()} for v in verified]
         t0 = time.perf_counter()
-        window = (s.gicp_kfs[-g.local_map_keyframes:][0] if self.cfg.slam.init is PoseInit.GICP
-                  and g.target is GicpTarget.LOCAL_MAP else None)
         moved = self._optimise_graph(i, est, rigid_from=window)
         graph_ms = (time.perf_counter() - t0) * 1e3
         rec = {"type": "loop_edge", "frame": i, "candidate": best.frame, "fitness": round(best.fitness, 4),
