@@ -14,7 +14,7 @@ from inrslam.config import load_config
 from inrslam.errors import ConfigError
 from inrslam.fields import FieldConfig, build_field
 from inrslam.fields.config import MlpConfig, MlpPrecision
-from inrslam.fields.models import MLPField
+from inrslam.fields.models import MLPField, check_bfloat16
 
 BOX = np.array([[-0.6, 0.6], [-0.5, 0.5], [0.0, 0.8]])
 COUPLINGS = ["coupled_base", "coupled", "decoupled"]
@@ -140,12 +140,12 @@ def test_bfloat16_deterministic_and_trains():
         first = None
         for _ in range(60):
             loss = ((f.sdf(x) - target) ** 2).mean()
-            first = float(loss) if first is None else first
+            first = float(loss.detach()) if first is None else first
             opt.zero_grad()
             loss.backward()
             opt.step()
-        assert float(loss) < 0.2 * first
-        final.append(float(loss))
+        assert float(loss.detach()) < 0.2 * first
+        final.append(float(loss.detach()))
     assert final[1] < 2 * final[0]
 
 
@@ -156,3 +156,14 @@ def test_config_key_and_bad_value():
     with pytest.raises(ConfigError, match="field.mlp.precision") as err:
         load_config(preset="paper", overrides=["field.encoding=mlp", "field.mlp.precision=float16"])
     assert "bfloat16" in str(err.value)  # names the choices
+
+
+def test_bfloat16_on_a_gpu_without_it_is_a_config_error(monkeypatch):
+    """A GPU without bfloat16 arithmetic gets a one-line error naming the key; CPUs and capable GPUs pass."""
+    check_bfloat16("cpu")
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *a, **k: True)
+    check_bfloat16("cuda")
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *a, **k: False)
+    with pytest.raises(ConfigError, match="field.mlp.precision.*float32"):
+        check_bfloat16("cuda")
+    check_bfloat16("cpu")

@@ -156,6 +156,14 @@ class EncoderField(Field):
         return FieldOutput(h[:, 0], self.decode(self.rgb_net, rgb_in))
 
 
+def check_bfloat16(device_type: str) -> None:
+    """A `ConfigError` for `field.mlp.precision=bfloat16` on a CUDA GPU without bfloat16 arithmetic (before Ampere),
+    where autocast would fail mid-run."""
+    if device_type == "cuda" and not torch.cuda.is_bf16_supported():
+        raise ConfigError("config key 'field.mlp.precision': bfloat16 needs a GPU with bfloat16 arithmetic (Ampere or "
+                          "later); this one has none: use float32")
+
+
 @ENCODINGS.register("mlp", help="4x256 MLP on Gaussian Fourier features (iMAP-like)")
 class MLPField(Field):
     """F = MLP (docs/spec.md §3.3): x = sin(p̂ᵀB) (93-d), trunk depth × width ReLU, SDF head width→h→1(+g).
@@ -188,6 +196,8 @@ class MLPField(Field):
     def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
         x = self.freq(p)
         low = self.precision is MlpPrecision.BFLOAT16
+        if low:
+            check_bfloat16(x.device.type)
         with torch.autocast(x.device.type, dtype=torch.bfloat16) if low else contextlib.nullcontext():
             t = self._trunk(self.trunk, x)
             h = self.sdf_head(t)
