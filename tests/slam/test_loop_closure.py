@@ -366,7 +366,6 @@ def test_closure_fires_at_the_revisit_of_the_loop_scene_and_brings_the_end_back(
     assert err[0] < 1e-6  # the first keyframe anchors the graph: no closure moves it
 
 
-
 def test_no_loop_onto_the_trackers_own_local_map(tmp_path):
     """With a local map longer than the loop (every GICP keyframe stays in it), the revisit is registered onto the
     first keyframes by tracking itself: no loop candidates, and the first frame stays where it started (a loop onto

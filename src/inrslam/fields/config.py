@@ -46,7 +46,7 @@ class MlpConfig:
     width: int = 256  # width of the trunk
     depth: int = 4  # number of layers of the trunk
     precision: MlpPrecision = MlpPrecision.FLOAT32  # float32 | bfloat16: the trunk's hidden layers and the heads in
-    # bfloat16 (autocast), 2-3x faster matrix products on CPUs with AVX-512 BF16 and on GPUs (docs/speed.md)
+    # bfloat16 (autocast; 1.9x per frame on a CPU with AVX-512 BF16, GPUs need bfloat16 arithmetic; docs/speed.md)
 
 
 @dataclass

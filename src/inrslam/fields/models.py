@@ -183,6 +183,7 @@ class MLPField(Field):
         rgb_in = g + d if self.coupling is Coupling.COUPLED else w
         self.rgb_head = nn.Sequential(nn.Linear(rgb_in, h), nn.ReLU(), nn.Linear(h, 3))
         self.precision = MlpPrecision(cfg.mlp.precision)
+        self._bf16_checked = ""  # device type on which bfloat16 arithmetic was found available (`check_bfloat16`)
 
     def _trunk(self, trunk: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
         """trunk(x); in bfloat16 mode its first layer runs in float32 (it reads the Fourier features, whose phases
@@ -196,8 +197,9 @@ class MLPField(Field):
     def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
         x = self.freq(p)
         low = self.precision is MlpPrecision.BFLOAT16
-        if low:
+        if low and x.device.type != self._bf16_checked:
             check_bfloat16(x.device.type)
+            self._bf16_checked = x.device.type
         with torch.autocast(x.device.type, dtype=torch.bfloat16) if low else contextlib.nullcontext():
             t = self._trunk(self.trunk, x)
             h = self.sdf_head(t)
