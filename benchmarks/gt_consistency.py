@@ -9,8 +9,11 @@ is itself a tracker's output (7-Scenes: KinectFusion) it is usually the ground t
 
 Prints the median and 90th percentile of the disagreement, the frames where it is largest, the frames whose colour or
 depth repeats the previous frame's (`slam.photo.skip_stale`), and the ATE that a
-trajectory equal to the ground truth but for the largest disagreement (a step at that frame) would score: what
-such a ground-truth error alone costs an estimate that does not follow it.
+trajectory equal to the ground truth but for the largest disagreement (a step at that frame) would score, ATE and
+unaligned drift: what such a ground-truth error alone costs an estimate that does not follow it. With `--runs RUN...`
+each run's trajectory is scored against the ground truth and against that corrected ground truth.
+
+    python benchmarks/gt_consistency.py --data ../shared/data/7scenes_redkitchen --dataset 7scenes --runs runs/s7
 """
 
 from __future__ import annotations
@@ -26,12 +29,14 @@ def main() -> None:
     ap.add_argument("--dataset", default="auto")
     ap.add_argument("--max-frames", type=int, default=0)
     ap.add_argument("--top", type=int, default=8, help="frames listed")
+    ap.add_argument("--runs", nargs="*", default=[], help="run folders (trajectory.txt) to score against both")
     args = ap.parse_args()
 
     from inrslam.config import load_config
     from inrslam.data.frame import repeated_streams
     from inrslam.datasets import open_dataset
-    from inrslam.eval.trajectory import ate
+    from inrslam.eval.trajectory import ate, drift_per_100
+    from inrslam.io.trajectory import read_tum
     from inrslam.slam.config import GicpConfig
     from inrslam.slam.registration import PreparedCloud, depth_points, register, rotation_deg
 
@@ -80,8 +85,16 @@ def main() -> None:
     fix = reg_step @ np.linalg.inv(f1.c2w)  # world correction applied from that frame on
     est = gt.copy()
     est[worst[0]:] = fix @ gt[worst[0]:]
-    print(f"ATE of the ground truth with frame {worst[0]}'s step replaced by the registration's: "
-          f"{100 * ate(est, gt)['rmse']:.2f} cm")
+    print(f"the ground truth with frame {worst[0]}'s step replaced by the registration's: ATE "
+          f"{100 * ate(est, gt)['rmse']:.2f} cm, drift {100 * drift_per_100(est, gt)['drift_m_per_100']:.2f} cm "
+          "per 100 frames")
+    for run in args.runs:
+        _, traj = read_tum(f"{run}/trajectory.txt")
+        if len(traj) != len(gt):
+            raise SystemExit(f"{run}/trajectory.txt: {len(traj)} poses, expected {len(gt)} (one per frame)")
+        scores = [f"ATE {100 * ate(traj, ref)['rmse']:.3f} cm, drift "
+                  f"{100 * drift_per_100(traj, ref)['drift_m_per_100']:.3f} cm per 100 frames" for ref in (gt, est)]
+        print(f"{run}: against the ground truth {scores[0]}; against it without frame {worst[0]}'s step {scores[1]}")
 
 
 if __name__ == "__main__":
