@@ -14,10 +14,12 @@ from inrslam.slam.config import GicpConfig, LoopConfig
 from inrslam.slam.loop_closure import (
     Candidate,
     Verification,
+    color_confirms,
     consistent,
     corrected_keyframes,
     follow_keyframes,
     nearby_keyframes,
+    new_place,
     overlap,
     path_length,
     significant,
@@ -243,6 +245,46 @@ def test_color_disagreement_is_lowest_at_the_true_relative_pose():
     assert np.isnan(color_disagreement(b.depth, gb, ga, away, b.intrinsics))
 
 
+def test_a_loop_onto_a_new_place_needs_edges_elsewhere():
+    cfg = LoopConfig(min_gap=100)
+    assert new_place(5, [], cfg)
+    loops = [{"candidate": 0, "frame": 270}]
+    assert not new_place(5, loops, cfg) and not new_place(99, loops, cfg) and new_place(100, loops, cfg)
+
+
+def test_the_colour_must_clearly_confirm_a_first_loop():
+    # margin 5 % of the estimate's disagreement for the first loop onto a place; further edges need only lower it
+    assert color_confirms(0.094, 0.1, True, 0.05) and not color_confirms(0.096, 0.1, True, 0.05)
+    assert color_confirms(0.099, 0.1, False, 0.05) and not color_confirms(0.1, 0.1, False, 0.05)
+    assert color_confirms(0.099, 0.1, True, 0.0)  # margin 0: only lower
+    assert not color_confirms(float("nan"), 0.1, True, 0.05) and not color_confirms(0.05, float("nan"), False, 0.0)
+
+
+def test_a_registration_the_colour_cannot_tell_from_the_drifted_estimate_is_not_a_first_loop():
+    from inrslam.config import load_config
+    from inrslam.datasets import open_dataset
+    from inrslam.slam.loop_closure import color_disagreement
+    from inrslam.slam.photometric import grey
+
+    cfg = load_config(preset="accurate", overrides=["data.path=builtin:loop", "data.builtin.frames=12",
+                                                    "data.builtin.width=96", "data.builtin.height=72"])
+    lc = cfg.slam.loop
+    ds = open_dataset(cfg.data)
+    a, b = ds[0], ds[8]
+    true = np.linalg.solve(a.c2w, b.c2w)  # b's camera in a's
+    ga, gb = grey(a.rgb), grey(b.rgb)
+    e = lambda T: color_disagreement(b.depth, gb, ga, T, b.intrinsics)  # noqa: E731
+    e_est = e(twist([-0.03, 0, 0, 0, 0, 0]) @ true)  # the estimate, drifted 3 cm
+    # the true relative pose explains the colour clearly better: a loop
+    assert color_confirms(e(true), e_est, True, lc.color_margin)
+    # a registration as far off the other way explains it a little better than the estimate, not clearly: the
+    # colour cannot tell the two apart, so no first loop (without the margin it would move the keyframe 6 cm)
+    e_wrong = e(twist([0.03, 0, 0, 0, 0, 0]) @ true)
+    assert e_wrong < e_est and color_confirms(e_wrong, e_est, True, 0.0)
+    assert not color_confirms(e_wrong, e_est, True, lc.color_margin)
+    assert color_confirms(e_wrong, e_est, False, lc.color_margin)  # onto a closed place only lower is asked
+
+
 def test_frames_follow_their_keyframes_rigidly():
     est = np.stack([np.eye(4)] * 6)
     for j in range(6):
@@ -302,7 +344,8 @@ def test_refit_moves_the_surface_to_the_corrected_keyframe_poses():
 
 @pytest.mark.parametrize("override, expected", [("slam.loop.corr_stages=[]", "at least one"),
                                                 ("slam.loop.corr_stages=[0.2,-0.1]", "> 0"),
-                                                ("slam.loop.min_overlap=1.5", "in [0, 1]")])
+                                                ("slam.loop.min_overlap=1.5", "in [0, 1]"),
+                                                ("slam.loop.color_margin=-0.1", "in [0, 1]")])
 def test_bad_loop_settings_are_one_line_config_errors(override, expected):
     from inrslam.config import load_config
     from inrslam.errors import ConfigError

@@ -89,7 +89,7 @@ RANGES: dict[str, Rule] = {
     "slam.loop.corr_stages": POS, "slam.loop.coarse_downsample": NONNEG, "slam.loop.epsilon": POS,
     "slam.loop.min_fitness": FRACTION, "slam.loop.max_correction": NONNEG,
     "slam.loop.max_correction_per_m": NONNEG, "slam.loop.max_correction_angle": POS, "slam.loop.consistency": POS,
-    "slam.loop.min_correction": NONNEG,
+    "slam.loop.min_correction": NONNEG, "slam.loop.color_margin": FRACTION,
     "slam.loop.refit_min_move": NONNEG, "slam.loop.refit_final_move": NONNEG,
     "slam.loop.odom_sigma_t": POS, "slam.loop.odom_sigma_r": POS,
     "slam.loop.loop_sigma_t": POS, "slam.loop.loop_sigma_r": POS, "slam.loop.huber": NONNEG,

@@ -149,6 +149,9 @@ class LoopConfig:
     # this much (smaller: within the verification's own error, the edge would only add it; 0 = off)
     color_check: bool = True  # a verified loop must explain the two views' colour better than the current estimate
     # does (the keyframe's pixels warped into the candidate: a cue independent of the depth registration)
+    color_margin: float = 0.05  # a loop onto a place with no loop edge yet must lower that colour disagreement by at
+    # least this fraction of the estimate's (a correction the colour cannot tell from the estimate is not confirmed;
+    # further edges onto a closed place need only lower it; 0 = only lower)
     refit_min_move: float = 0.01  # metres: re-fit the map once the corrections since the last re-fit (the largest
     # keyframe move of each) add up to this
     refit_final_move: float = 0.001  # metres: the same rule after the last frame's graph (one re-fit per run, so a

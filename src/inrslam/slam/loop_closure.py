@@ -168,15 +168,29 @@ def verify(cand: list[PreparedCloud], cur: list[PreparedCloud], T_w_cand: np.nda
     return Verification(frame, ok, None if ok else "correction", T, reg.fitness, corr_m, ang, bound)
 
 
+def new_place(candidate: int, loops: list[dict], cfg: LoopConfig) -> bool:
+    """Whether no loop edge exists yet onto a candidate within `cfg.min_gap` frames of `candidate` (a loop there
+    would be the first onto that place; otherwise that loop is closed and further edges keep it closed). Example:
+    min_gap 100, an edge onto frame 0 -> candidate 5 is not a new place, candidate 150 is."""
+    return not any(abs(int(lp["candidate"]) - candidate) < cfg.min_gap for lp in loops)
+
+
 def significant(v: Verification, loops: list[dict], cfg: LoopConfig) -> bool:
     """Whether a verified loop is worth an edge: it moves the keyframe at least `cfg.min_correction` metres, or its
-    candidate lies within `cfg.min_gap` frames of a candidate that already has a loop edge (that loop is closed:
-    further edges keep it closed). A first loop onto a place that corrects less than the verification's own error
-    would only add that error to a trajectory that had not drifted there. Example: min_correction 5 mm, no edges
-    yet, a 3 mm correction -> False; an edge onto frame 0 exists and this candidate is frame 5 -> True."""
-    if v.correction >= cfg.min_correction:
-        return True
-    return any(abs(int(lp["candidate"]) - v.frame) < cfg.min_gap for lp in loops)
+    candidate is not a `new_place` (that loop is closed: further edges keep it closed). A first loop onto a place
+    that corrects less than the verification's own error would only add that error to a trajectory that had not
+    drifted there. Example: min_correction 5 mm, no edges yet, a 3 mm correction -> False; an edge onto frame 0
+    exists and this candidate is frame 5 -> True."""
+    return v.correction >= cfg.min_correction or not new_place(v.frame, loops, cfg)
+
+
+def color_confirms(loop_e: float, estimate_e: float, first: bool, margin: float) -> bool:
+    """Whether the colour confirms a loop: its registered relative pose explains the two views' colour
+    (`color_disagreement` `loop_e`) better than the current estimate's (`estimate_e`), by at least `margin` x
+    `estimate_e` for the `first` loop onto a place, which moves the trajectory (a registration the colour cannot
+    tell from the estimate is not evidence that the estimate drifted). False with NaN (no overlap to judge by).
+    Example: margin 0.05, estimate 0.100 -> a first loop needs < 0.095, a further edge < 0.100."""
+    return loop_e < estimate_e * (1.0 - margin if first else 1.0)
 
 
 def consistent(verified: list[Verification], est: np.ndarray, tol: float) -> bool:

@@ -22,11 +22,13 @@ from inrslam.slam.config import GicpConfig, GicpTarget, MeshConfig, PoseInit, Sl
 from inrslam.slam.frame_tensors import FrameTensors
 from inrslam.slam.keyframes import KeyframeStore
 from inrslam.slam.loop_closure import (
+    color_confirms,
     color_disagreement,
     consistent,
     corrected_keyframes,
     follow_keyframes,
     nearby_keyframes,
+    new_place,
     overlap,
     path_length,
     significant,
@@ -683,7 +685,7 @@ class SlamSystem:
                 est_e = color_disagreement(frame.depth, grey_k, grey_c, np.linalg.solve(est[c.frame], est[i]),
                                             frame.intrinsics)
                 color = {"color_loop": round(loop_e, 5), "color_estimate": round(est_e, 5)}
-                if not loop_e < est_e:  # (NaN: no overlap to judge by)
+                if not color_confirms(loop_e, est_e, new_place(c.frame, s.loops, lc), lc.color_margin):
                     v = dataclasses.replace(v, ok=False, reason="color")
             self._log({"type": "loop_candidate", "frame": i, "distance_m": round(c.distance, 4),
                        "angle_deg": round(c.angle, 2), "overlap": round(c.overlap, 4), **v.record(), **color})
