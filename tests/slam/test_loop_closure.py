@@ -427,6 +427,23 @@ def test_no_loop_onto_the_trackers_own_local_map(tmp_path):
     assert np.linalg.norm(est[0, :3, 3] - gt[0, :3, 3]) < 1e-6
 
 
+def test_a_colour_margin_no_registration_can_meet_closes_no_loop(loop_run, tmp_path):
+    """`slam.loop.color_margin=1` asks a first loop for a colour disagreement below zero: the same run as `loop_run`
+    (which closes loops) verifies its candidates but rejects each on colour, also those whose colour was better than
+    the estimate's, and adds no edge."""
+    from inrslam.config import load_config
+    from inrslam.runner import run_slam
+
+    assert _records(loop_run, "loop_edge") + _records(loop_run, "loop_closed")
+    out = tmp_path / "run"
+    run_slam(load_config(preset="accurate", overrides=["data.path=builtin:loop", "slam.loop_closure=true",
+                                                       "slam.loop.color_margin=1", *LOOP_RUN]), out)
+    assert _records(out, "loop_edge") == [] and _records(out, "loop_closed") == []
+    coloured = [r for r in _records(out, "loop_candidate") if r["reason"] == "color"]
+    assert any(r["color_loop"] < r["color_estimate"] for r in coloured)
+    assert not any(r["ok"] for r in _records(out, "loop_candidate"))
+
+
 def test_interrupted_loop_closure_run_resumes_to_the_uninterrupted_result(loop_run, tmp_path):
     from inrslam.config import load_config
     from inrslam.runner import resume_slam, run_slam
