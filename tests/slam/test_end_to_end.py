@@ -96,6 +96,28 @@ def test_run_holds_its_own_thread_count_whatever_the_process_left_set(run_a, tmp
     assert info["threads"] == resolve_threads(0)
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the OpenMP ballast acts on Linux's libgomp")
+def test_a_run_throttled_throughout_by_the_load_guard_is_byte_identical(run_a, tmp_path):
+    """The adaptive wait policy's ballast changes when OpenMP threads sleep, never how work is split."""
+    import torch
+
+    from inrslam import omp_env
+
+    torch.ones(1 << 20).sum()  # torch's OpenMP runtime has its pool
+    libs = omp_env.loaded_libgomp()
+    if not libs:
+        pytest.skip("no GNU libgomp loaded in this process")
+    ballast = omp_env.Ballast(libs, os.cpu_count() or 2).start()
+    try:
+        run_slam(quick_cfg(), tmp_path / "b")
+    finally:
+        ballast.stop()
+    for name in ("trajectory.txt", "mesh.ply"):
+        assert (tmp_path / "b" / name).read_bytes() == (run_a / name).read_bytes(), name
+    info = json.loads((tmp_path / "b" / "run_info.json").read_text())["omp_wait_policy"]
+    assert set(info) == {"policy", "set_by", "adaptive", "guard"}
+
+
 def test_killed_run_resumes_to_identical_result(run_a, tmp_path):
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "inrslam.cli", "run", "--preset", "quick", "--out", str(out), "--quiet", *OVERRIDES,

@@ -13,6 +13,7 @@ from inrslam.config.loader import dump_config, load_config
 from inrslam.errors import ConfigError, RunError
 from inrslam.io.atomic import write_text
 from inrslam.io.rundir import RunDir
+from inrslam.omp_env import load_guard
 from inrslam.runner.writer import RunWriter
 from inrslam.slam.system import Progress, SlamSystem
 from inrslam.slam.systems import system_class
@@ -45,7 +46,7 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, 
     stage(log, f"opening the dataset {cfg.data.path}")
     dataset = open_dataset(cfg.data)
     threads = resolve_threads(cfg.threads or threads or 0)
-    with thread_scope(threads):
+    with thread_scope(threads), load_guard():
         stage(log, f"building the map: {cfg.field.encoding} x {cfg.render.name}, {len(dataset)} frames")
         system = system_class(cfg)(cfg, dataset)
         out.mkdir(parents=True, exist_ok=True)
@@ -68,7 +69,7 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
     dataset = open_dataset(cfg.data)
     threads = _recorded_threads(run_dir) if not cfg.threads else None
     threads = threads or resolve_threads(cfg.threads)
-    with thread_scope(threads):
+    with thread_scope(threads), load_guard():
         stage(log, f"building the map and loading the checkpoint {rd.checkpoint}")
         system = system_class(cfg)(cfg, dataset)
         return _drive(system, RunWriter(system, rd, threads), resume=True, progress=progress)
