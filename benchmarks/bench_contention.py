@@ -81,6 +81,7 @@ def measure(policy: str, competitors: int, kind: str, args) -> dict:
             cmd = [sys.executable, "-c", BUSY] if kind == "busy" else child(policy, args, repeat=True)
             comp.append(subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
 
+    run: subprocess.Popen | None = None
     try:
         if args.late <= 0:  # competitors first, the measured run once they are under way
             start_competitors()
@@ -93,7 +94,7 @@ def measure(policy: str, competitors: int, kind: str, args) -> dict:
         if run.returncode:
             raise SystemExit(f"the measured run failed (exit {run.returncode})")
     finally:
-        for p in comp:
+        for p in comp + ([run] if run is not None and run.poll() is None else []):
             p.kill()
             p.wait()
     return json.loads(out.strip().splitlines()[-1])

@@ -46,10 +46,29 @@ def test_a_users_policy_is_kept_and_not_adapted():
     assert env == "ACTIVE" and info["policy"] == "ACTIVE" and info["set_by"] == "user" and not info["adaptive"]
 
 
-def test_torch_loaded_first_keeps_the_runtime_default_says_so_and_still_adapts():
+def test_torch_loaded_first_keeps_the_runtime_default_says_so_and_adapts_it_on_libgomp():
     env, info = probe(pre="import torch\n")
     assert env is None and info["policy"] is None and "torch imported before inrslam" in info["set_by"]
-    assert info["adaptive"] is True
+    assert info["adaptive"] is LIBGOMP
+
+
+def test_passive_asked_for_after_torch_loaded_throttles_whole_runs():
+    env, info = probe(pre="import torch\n", INRSLAM_OMP_WAIT="passive")
+    assert env is None and "throttled for whole runs" in info["set_by"] and info["adaptive"] is LIBGOMP
+
+
+def test_omp_dynamic_or_a_thread_limit_makes_the_wait_passive():
+    for key, value in (("OMP_DYNAMIC", "true"), ("OMP_THREAD_LIMIT", "8")):
+        env, info = probe(**{key: value})
+        assert env == "PASSIVE" and info["adaptive"] is False, key
+
+
+def test_an_unknown_choice_warns_and_adapts():
+    e = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY",)} | {"INRSLAM_OMP_WAIT": "pasive"}
+    res = subprocess.run([sys.executable, "-W", "always", "-c", PROBE.format(pre="")], env=e, capture_output=True,
+                         text=True, check=True)
+    assert "INRSLAM_OMP_WAIT='pasive' is not one of adaptive, passive, runtime" in res.stderr
+    assert json.loads(res.stdout)[1]["adaptive"] is LIBGOMP
 
 
 def test_the_runtime_default_on_request_is_never_throttled():
@@ -72,8 +91,10 @@ def test_proc_stat_busy_time_of_the_allowed_cores_only():
     assert parse_proc_stat(STAT, {0}, 100.0) == pytest.approx(1.61)
     assert parse_proc_stat(STAT, {0, 1}, 100.0) == pytest.approx(1.61 + 2.64)
     assert parse_proc_stat(STAT, {1, 2}, 50.0) == pytest.approx((264 + 490) / 50)
-    assert parse_proc_stat(STAT, {7}, 100.0) is None
+    # none of the cores listed (a container numbering its own cores from 0): the all-core line, 900 + 300 ticks
+    assert parse_proc_stat(STAT, {7}, 100.0) == pytest.approx(12.0)
     assert parse_proc_stat("garbage\n", {0}, 100.0) is None
+    assert parse_proc_stat("cpu0 1 2 3 x 5 6 7 8\n", {0}, 100.0) is None
 
 
 def test_other_processes_load_is_busy_time_minus_our_own_per_second():
@@ -95,8 +116,8 @@ def test_hysteresis_engages_at_once_and_releases_after_calm_samples():
     assert omp_env.RELEASE_SAMPLES == 4 and omp_env.RELEASE_LOAD < omp_env.ENGAGE_LOAD
 
 
-def _threads() -> int:
-    return len(os.listdir("/proc/self/task"))
+def _thread_ids() -> set[str]:
+    return set(os.listdir("/proc/self/task"))
 
 
 def _wait_for(cond, timeout=5.0) -> bool:
@@ -115,29 +136,66 @@ libgomp_only = pytest.mark.skipif(not LIBGOMP, reason="the ballast acts on GNU l
 def test_the_ballast_adds_sleeping_threads_to_every_libgomp_and_frees_them():
     torch.ones(1 << 20).sum()  # torch's libgomp has its pool
     libs = omp_env.loaded_libgomp()
-    assert libs and all("libgomp" in os.path.basename(p) for p in libs)
-    before = _threads()
+    assert libs and all(os.path.basename(p).startswith("libgomp") for p in libs)
+    before = _thread_ids()
     ballast = omp_env.Ballast(libs, 3).start()
     assert ballast.held == libs
     # per runtime: a team of 3 started from the ballast's thread = 2 new pool threads; plus the ballast thread
-    assert _threads() == before + 1 + 2 * len(libs)
+    new = _thread_ids() - before
+    assert len(new) >= 1 + 2 * len(libs)
     ballast.stop()
-    assert _wait_for(lambda: _threads() == before)
+    assert _wait_for(lambda: not (_thread_ids() & new))
+
+
+SPIN_PROBE = r"""
+import json, os, time, torch
+from inrslam import omp_env
+
+def worker_ticks():
+    main, total = os.getpid(), 0
+    for tid in os.listdir("/proc/self/task"):
+        if int(tid) != main:
+            with open(f"/proc/self/task/{tid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            total += int(fields[11]) + int(fields[12])  # utime + stime of the thread
+    return total
+
+x = torch.ones(1 << 18)
+def regions():
+    t0 = worker_ticks()
+    for _ in range(300):
+        x.mul_(1.0)  # one parallel region of torch's two threads
+        time.sleep(0.002)  # the worker now waits: spinning burns this time, a throttled wait sleeps
+    return worker_ticks() - t0
+
+torch.set_num_threads(2)
+regions()
+spin = regions()
+ballast = omp_env.Ballast(omp_env.loaded_libgomp(), len(os.sched_getaffinity(0)) + 1).start()
+throttled = regions()
+ballast.stop()
+print(json.dumps({"spin": spin, "throttled": throttled}))
+"""
+
+
+@libgomp_only
+def test_with_the_ballast_waiting_threads_sleep_instead_of_spinning():
+    """The mechanism itself, in CPU time (not wall time): between 300 small parallel regions 2 ms apart, torch's
+    worker spins through the gaps under the runtime's default and sleeps with the ballast held."""
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("needs 2 cores for a 2-thread team")
+    e = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "INRSLAM_OMP_WAIT", "GOMP_SPINCOUNT")}
+    out = subprocess.run([sys.executable, "-c", SPIN_PROBE], env=e, capture_output=True, text=True, check=True).stdout
+    ticks = json.loads(out)
+    # spinning through 300 gaps of >= 2 ms burns >= 0.6 s of the worker's time (60 ticks at 100 Hz) when it runs
+    assert ticks["spin"] >= 20 and ticks["throttled"] * 4 < ticks["spin"], ticks
 
 
 @libgomp_only
 def test_the_guard_holds_a_ballast_while_others_load_the_machine():
     torch.ones(1 << 20).sum()
-    loads = iter([0.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1] + [0.0] * 1000)  # cores of others per interval
-    clock = {"t": 0.0, "busy": 0.0}
     engaged_seen = []
-
-    def sample():
-        clock["t"] += 1.0
-        clock["busy"] += next(loads)
-        return CpuSample(clock["t"], clock["busy"], 0.0)
-
-    guard = LoadGuard(sample=sample, interval=0.01)
+    guard = LoadGuard(sample=_scripted([0.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1]), interval=0.01)  # cores of others
     orig = guard.engage
 
     def engage():
@@ -151,6 +209,77 @@ def test_the_guard_holds_a_ballast_while_others_load_the_machine():
     # the first reading is the baseline; the loads 1.0, 1.0 engage, then 4 calm samples release
     assert engaged_seen and all(engaged_seen)
     assert guard.switches == 1 and guard.throttled_samples == 5 and not guard.throttled
+
+
+def _scripted(loads):
+    """A sampler whose successive readings show `loads` cores of other processes per interval (then 0)."""
+    it = iter(list(loads) + [0.0] * 100000)
+    clock = {"t": 0.0, "busy": 0.0}
+
+    def sample():
+        clock["t"] += 1.0
+        clock["busy"] += next(it)
+        return CpuSample(clock["t"], clock["busy"], 0.0)
+
+    return sample
+
+
+def test_only_load_beyond_the_cores_a_run_leaves_free_engages(monkeypatch):
+    monkeypatch.setattr(omp_env, "_affinity", lambda: {0, 1, 2, 3})
+    monkeypatch.setattr(omp_env, "_run_threads", lambda: 1)  # the run leaves 3 of 4 cores free
+    engaged = []
+    guard = LoadGuard(sample=_scripted([0.0, 2.9, 2.9, 3.6]), interval=0.01)  # the first reading is the baseline
+    monkeypatch.setattr(guard, "engage", lambda: engaged.append(guard.samples))
+    guard.enter()
+    assert _wait_for(lambda: guard.samples >= 5)
+    guard.exit()
+    assert engaged and engaged[0] == 2  # not at 2.9 cores twice (0 beyond the free 3), at 3.6 (0.6 beyond)
+
+
+def test_nested_blocks_share_one_watcher():
+    guard = LoadGuard(sample=_scripted([]), interval=0.01)
+    guard.enter()
+    guard.enter()
+    first = guard._thread
+    guard.exit()
+    assert guard._thread is first and first is not None and first.is_alive()
+    guard.exit()
+    assert guard._thread is None and not first.is_alive()
+
+
+@libgomp_only
+def test_without_readings_the_guard_throttles_the_whole_block_and_lets_go_at_the_end():
+    torch.ones(1 << 20).sum()
+    guard = LoadGuard(sample=lambda: None, interval=0.01)
+    guard.enter()
+    assert _wait_for(lambda: guard.samples >= 3)
+    assert guard.throttled and guard.switches == 1
+    guard.exit()
+    assert not guard.throttled and guard.throttled_samples == guard.samples
+
+
+@libgomp_only
+def test_a_failing_reading_stops_the_guard_and_lets_the_ballast_go():
+    torch.ones(1 << 20).sum()
+    readings = iter([CpuSample(0.0, 0.0, 0.0), CpuSample(1.0, 2.0, 0.0)])
+
+    def sample():
+        try:
+            return next(readings)
+        except StopIteration:
+            raise RuntimeError("unreadable") from None
+
+    guard = LoadGuard(sample=sample, interval=0.01)
+    guard.enter()
+    assert _wait_for(lambda: guard.failed is not None)
+    assert _wait_for(lambda: not guard.throttled)
+    guard.exit()
+    assert guard.switches == 1 and guard.stats()["failed"] == "RuntimeError: unreadable"
+
+
+def test_thread_headroom_is_a_count_or_unknown():
+    room = omp_env.thread_headroom()
+    assert room is None or isinstance(room, int)
 
 
 def test_the_guard_is_a_no_op_without_the_adaptive_policy(monkeypatch):

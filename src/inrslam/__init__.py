@@ -9,7 +9,7 @@ from inrslam.omp_env import apply_wait_policy as _apply_wait_policy
 
 __version__ = "0.1.0"
 
-_apply_wait_policy()  # before torch loads OpenMP: passive waits (docs/speed.md, shared machines)
+_apply_wait_policy()  # before torch loads OpenMP: adaptive or passive waits (docs/speed.md, shared machines)
 
 _API = ("run", "load_config", "evaluate", "sweep", "report", "load_run", "LoadedRun")
 __all__ = ["__version__", *_API]

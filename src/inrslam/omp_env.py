@@ -9,20 +9,24 @@ no collapse, but every region pays a wake-up (1.1-1.8x slower per frame alone). 
 when it loads, so it is chosen here, at `import inrslam`:
 
 - `OMP_WAIT_POLICY` set by the user: kept as given.
-- `INRSLAM_OMP_WAIT=runtime`: the runtime's default (spin, then sleep), always.
-- `INRSLAM_OMP_WAIT=passive`: `OMP_WAIT_POLICY=PASSIVE`, always.
+- `INRSLAM_OMP_WAIT=runtime`: the runtime's default (spin, then sleep), never throttled.
+- `INRSLAM_OMP_WAIT=passive`: `OMP_WAIT_POLICY=PASSIVE` (if torch was imported first, runs hold the throttle below
+  from start to end instead).
 - otherwise (`adaptive`, the default where torch's OpenMP runtime is GNU libgomp, as in the Linux wheels): the
-  runtime's default, and while a run computes, `load_guard` watches how much CPU *other* processes use; under
-  load it makes every libgomp in the process wait as if passive (below), and lets it spin again once the load is
-  gone. Where the runtime is another one (macOS, some conda builds), `PASSIVE`.
-- torch imported before inrslam: the runtime's default has been read already; `load_guard` still adapts it.
+  runtime's default, and while a run computes, `load_guard` watches how much CPU *other* processes use; while they
+  would oversubscribe the cores it makes every libgomp in the process wait as if passive (below), and lets it spin
+  again once the load is gone. Where torch's runtime is another one (macOS, some conda builds), or `OMP_DYNAMIC` /
+  `OMP_THREAD_LIMIT` is set (libgomp may then shrink the throttle's threads), `PASSIVE`.
+- torch imported before inrslam: the runtime's default has been read already; `load_guard` adapts it if torch's
+  runtime is libgomp.
 
 How the guard switches a running libgomp: a thread waiting at a barrier spins `GOMP_SPINCOUNT` times (300 000 by
 default) before it sleeps, but only 100 times when the runtime manages more threads than the CPUs it may use.
 Entering one parallel region of `cores + 1` threads from a helper thread (the *ballast*: its threads do nothing and
-sleep) raises that count above the CPUs; ending the helper thread frees its threads and lowers it again. The policy
-changes when threads sleep, never how work is split: results are the same under any policy and with or without the
-ballast (tested).
+sleep) raises that count above the CPUs; ending the helper thread frees its threads and lowers it again. Where the
+load cannot be read (no /proc/stat), the guard holds the ballast for the whole block: passive, as is safe. The
+policy changes when threads sleep, never how work is split: results are the same under any policy and with or
+without the ballast (tested).
 """
 
 from __future__ import annotations
@@ -34,21 +38,27 @@ import os
 import sys
 import threading
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable, Iterator, Optional
 
 ENV = "OMP_WAIT_POLICY"
 OPT_OUT = "INRSLAM_OMP_WAIT"  # "runtime": spin, then sleep; "passive": always sleep; "adaptive" / unset: the guard
+CHOICES = ("adaptive", "passive", "runtime")
 DEFAULT = "PASSIVE"
 _origin = "unset"
-_adaptive = False
+_adaptive = False  # runs adapt the wait to the load (`load_guard`)
+_always = False  # runs hold the throttle from start to end (passive asked for after torch loaded)
 
-# the guard's thresholds: other processes' CPU use in cores, averaged over one sampling interval
+# the guard's thresholds, in cores: other processes' CPU use beyond the cores this run leaves free, averaged over one
+# sampling interval
 ENGAGE_LOAD = 0.5  # at or above: throttle the spinning
 RELEASE_LOAD = 0.25  # below this for RELEASE_SAMPLES consecutive samples: spin again
 RELEASE_SAMPLES = 4
 INTERVAL_S = 0.25  # seconds between samples
+JOIN_TIMEOUT_S = 5.0  # seconds to wait for a helper thread to start or end
+THREAD_MARGIN = 64  # threads that must stay available under the process's limits after the ballast's
 
 
 def _torch_runtime_is_libgomp() -> bool:
@@ -63,32 +73,46 @@ def _torch_runtime_is_libgomp() -> bool:
     if spec is None or not spec.submodule_search_locations:
         return False
     lib = os.path.join(list(spec.submodule_search_locations)[0], "lib")
-    others = glob.glob(os.path.join(lib, "libiomp5*")) + glob.glob(os.path.join(lib, "libomp.*"))
+    others = glob.glob(os.path.join(lib, "libiomp5*")) + glob.glob(os.path.join(lib, "libomp*"))
     return bool(glob.glob(os.path.join(lib, "libgomp*"))) and not others
+
+
+def _omp_limits_set() -> bool:
+    """OMP_DYNAMIC or OMP_THREAD_LIMIT set: libgomp may give the ballast fewer threads than it asks for."""
+    return os.environ.get("OMP_DYNAMIC", "").strip().lower() in ("true", "1", "yes") or "OMP_THREAD_LIMIT" in os.environ
 
 
 def apply_wait_policy() -> str:
     """Choose the wait policy (module docstring) if no OpenMP runtime is loaded yet; returns who chose it."""
-    global _origin, _adaptive
-    choice = os.environ.get(OPT_OUT, "").lower()
+    global _origin, _adaptive, _always
+    choice = os.environ.get(OPT_OUT, "").strip().lower()
+    if choice and choice not in CHOICES:
+        warnings.warn(f"{OPT_OUT}={choice!r} is not one of {', '.join(CHOICES)}: using adaptive", stacklevel=2)
+        choice = "adaptive"
+    loaded = "torch" in sys.modules or "numba" in sys.modules
+    libgomp = _torch_runtime_is_libgomp() and not _omp_limits_set()
+    _adaptive = _always = False
     if ENV in os.environ:
         _origin = "user" if _origin != "inrslam" else _origin
-        _adaptive = False
     elif choice == "runtime":
-        _origin, _adaptive = f"runtime default ({OPT_OUT}=runtime)", False
-    elif "torch" in sys.modules or "numba" in sys.modules:
-        _origin, _adaptive = "runtime default (torch imported before inrslam), adaptive", True
-    elif choice != "passive" and _torch_runtime_is_libgomp():
+        _origin = f"runtime default ({OPT_OUT}=runtime)"
+    elif loaded and choice == "passive":
+        _origin = "runtime default (torch imported before inrslam), throttled for whole runs"
+        _adaptive = _always = libgomp
+    elif loaded:
+        _origin = "runtime default (torch imported before inrslam)" + (", adaptive" if libgomp else "")
+        _adaptive = libgomp
+    elif choice != "passive" and libgomp:
         _origin, _adaptive = "inrslam (adaptive)", True
     else:
         os.environ[ENV] = DEFAULT
-        _origin, _adaptive = "inrslam", False
+        _origin = "inrslam"
     return _origin
 
 
 def wait_policy() -> dict:
     """{'policy': the OMP_WAIT_POLICY in effect (None: the runtime's default, spinning), 'set_by': who set it,
-    'adaptive': whether runs throttle the spinning under load, 'guard': the guard's counts so far}."""
+    'adaptive': whether runs throttle the spinning under load, 'guard': the counts of the last guarded block}."""
     return {"policy": os.environ.get(ENV), "set_by": _origin, "adaptive": _adaptive, "guard": _GUARD.stats()}
 
 
@@ -102,24 +126,33 @@ class CpuSample:
     own: float
 
 
+def _busy_ticks(vals: list[str]) -> int:
+    v = [int(x) for x in vals[:8]]  # user nice system idle iowait irq softirq steal
+    return v[0] + v[1] + v[2] + v[5] + v[6] + v[7]
+
+
 def parse_proc_stat(text: str, cpus: set[int], ticks_per_s: float) -> Optional[float]:
     """Busy seconds (user, nice, system, irq, softirq, steal) summed over the `cpuN` lines of /proc/stat whose N is in
-    `cpus`; None if none of them is there."""
-    total, seen = 0, False
-    for line in text.splitlines():
-        if not line.startswith("cpu") or line.startswith("cpu "):
-            continue
-        name, *vals = line.split()
-        try:
-            n = int(name[3:])
-        except ValueError:
-            continue
-        if n not in cpus or len(vals) < 8:
-            continue
-        v = [int(x) for x in vals[:8]]  # user nice system idle iowait irq softirq steal
-        total += v[0] + v[1] + v[2] + v[5] + v[6] + v[7]
-        seen = True
-    return total / ticks_per_s if seen else None
+    `cpus`; where none of them is listed (a container's /proc numbering its own cores from 0), the all-core `cpu`
+    line; None if unreadable."""
+    total, seen, aggregate = 0, False, None
+    try:
+        for line in text.splitlines():
+            if not line.startswith("cpu"):
+                continue
+            name, *vals = line.split()
+            if len(vals) < 8:
+                continue
+            if name == "cpu":
+                aggregate = _busy_ticks(vals)
+            elif name[3:].isdigit() and int(name[3:]) in cpus:
+                total += _busy_ticks(vals)
+                seen = True
+    except ValueError:
+        return None
+    if seen:
+        return total / ticks_per_s
+    return aggregate / ticks_per_s if aggregate is not None else None
 
 
 def other_load(a: CpuSample, b: CpuSample) -> float:
@@ -132,7 +165,8 @@ def other_load(a: CpuSample, b: CpuSample) -> float:
 
 def next_state(engaged: bool, calm: int, load: float) -> tuple[bool, int]:
     """The guard's hysteresis: (engaged, consecutive calm samples) after a sample with `load` cores of other
-    processes. Engages at once at ENGAGE_LOAD; releases after RELEASE_SAMPLES samples below RELEASE_LOAD."""
+    processes beyond the free ones. Engages at once at ENGAGE_LOAD; releases after RELEASE_SAMPLES samples below
+    RELEASE_LOAD."""
     if load >= ENGAGE_LOAD:
         return True, 0
     if not engaged:
@@ -141,15 +175,18 @@ def next_state(engaged: bool, calm: int, load: float) -> tuple[bool, int]:
     return (False, 0) if calm >= RELEASE_SAMPLES else (True, calm)
 
 
+def _affinity() -> set[int]:
+    return set(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else set(range(os.cpu_count() or 1))
+
+
 def _proc_sampler() -> Callable[[], Optional[CpuSample]]:
     """Readings from /proc/stat (the cores in this process's affinity mask) and os.times() (this process)."""
-    cpus = set(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else set()
     ticks = float(os.sysconf("SC_CLK_TCK")) if hasattr(os, "sysconf") else 100.0
 
     def read() -> Optional[CpuSample]:
         try:
             with open("/proc/stat") as f:
-                busy = parse_proc_stat(f.read(), cpus, ticks)
+                busy = parse_proc_stat(f.read(), _affinity(), ticks)
         except OSError:
             return None
         if busy is None:
@@ -160,15 +197,61 @@ def _proc_sampler() -> Callable[[], Optional[CpuSample]]:
     return read
 
 
+def _run_threads() -> int:
+    """Threads a run computes with: torch's intra-op count in the calling thread where torch is loaded, else every
+    core."""
+    torch = sys.modules.get("torch")
+    try:
+        return int(torch.get_num_threads()) if torch is not None else len(_affinity())
+    except Exception:  # a half-imported torch: assume every core
+        return len(_affinity())
+
+
 # -- the ballast ----------------------------------------------------------------------------------------------------
 def loaded_libgomp() -> list[str]:
     """Paths of the GNU OpenMP runtimes loaded in this process (torch ships its own; numba may load the system's)."""
+    out = set()
     try:
         with open("/proc/self/maps") as f:
-            return sorted({line.split()[-1] for line in f if os.path.basename(line.split()[-1]).startswith("libgomp")
-                           and "/" in line})
+            for line in f:
+                if "libgomp" not in line:
+                    continue
+                parts = line.split(maxsplit=5)
+                path = parts[5].strip() if len(parts) == 6 else ""
+                base = os.path.basename(path)
+                if base.startswith("libgomp") and "plugin" not in base:
+                    out.add(path)
     except OSError:
         return []
+    return sorted(out)
+
+
+def thread_headroom() -> Optional[int]:
+    """Threads this process may still start under its cgroup's pids.max (cgroup v2) and RLIMIT_NPROC's soft limit
+    (which also counts the user's other threads: only its size is used); None where neither limit is known."""
+    room: list[int] = []
+    own = len(os.listdir("/proc/self/task")) if os.path.isdir("/proc/self/task") else 0
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_NPROC)[0]
+        if soft != resource.RLIM_INFINITY:
+            room.append(int(soft) - own)
+    except (ImportError, OSError, ValueError):
+        pass
+    try:
+        with open("/proc/self/cgroup") as f:
+            rel = next((line.split(":", 2)[2].strip() for line in f if line.startswith("0::")), None)
+        if rel is not None:
+            base = os.path.join("/sys/fs/cgroup", rel.lstrip("/"))
+            with open(os.path.join(base, "pids.max")) as f:
+                limit = f.read().strip()
+            if limit != "max":
+                with open(os.path.join(base, "pids.current")) as f:
+                    room.append(int(limit) - int(f.read().strip()))
+    except (OSError, ValueError, StopIteration):
+        pass
+    return min(room) if room else None
 
 
 class Ballast:
@@ -200,24 +283,28 @@ class Ballast:
         self._stop.wait()  # returning ends the thread: libgomp frees its pools and their threads
 
     def start(self) -> "Ballast":
+        """Start the helper thread and wait until its regions were entered."""
         self._thread.start()
-        self._ready.wait(5.0)
+        self._ready.wait(JOIN_TIMEOUT_S)
         return self
 
     def stop(self) -> None:
+        """End the helper thread (libgomp then frees the ballast's threads)."""
         self._stop.set()
-        self._thread.join(5.0)
+        self._thread.join(JOIN_TIMEOUT_S)
 
 
 class LoadGuard:
-    """Samples other processes' load every INTERVAL_S seconds while at least one `load_guard()` block is open, and
-    holds a `Ballast` while they load the machine (`next_state`)."""
+    """While at least one `load_guard()` block is open, samples other processes' load every `interval` seconds and
+    holds a `Ballast` while they would oversubscribe the cores (`next_state`; `always`: from start to end)."""
 
-    def __init__(self, sample: Optional[Callable[[], Optional[CpuSample]]] = None, interval: float = INTERVAL_S):
-        """sample: returns one reading (None: cannot read; the guard stops), default /proc/stat and os.times();
-        interval: seconds between readings."""
+    def __init__(self, sample: Optional[Callable[[], Optional[CpuSample]]] = None, interval: float = INTERVAL_S,
+                 always: bool = False):
+        """sample: returns one reading (None: cannot read; the guard then holds the ballast), default /proc/stat and
+        os.times(); interval: seconds between readings; always: hold the ballast whatever the load."""
         self._sample = sample or _proc_sampler()
         self.interval = interval
+        self.always = always
         self._lock = threading.Lock()
         self._users = 0
         self._stop = threading.Event()
@@ -226,13 +313,20 @@ class LoadGuard:
         self.samples = 0
         self.throttled_samples = 0
         self.switches = 0
+        self.failed: Optional[str] = None
+        self.run_threads = 0  # threads of the guarded run (set on entry)
 
     def stats(self) -> dict:
-        return {"samples": self.samples, "throttled_samples": self.throttled_samples, "switches": self.switches}
+        """Counts of the current or last guarded block: readings, readings while throttled, ballasts started."""
+        out: dict = {"samples": self.samples, "throttled_samples": self.throttled_samples, "switches": self.switches}
+        if self.failed:
+            out["failed"] = self.failed
+        return out
 
     @property
     def throttled(self) -> bool:
-        return self._ballast is not None
+        """Whether a ballast is held now."""
+        return self._ballast is not None and bool(self._ballast.held)
 
     def engage(self) -> None:
         """Hold a ballast in every loaded libgomp (again if one was loaded since)."""
@@ -240,47 +334,67 @@ class LoadGuard:
         if self._ballast is not None and self._ballast.libs == libs:
             return
         self.release()
-        if libs:
-            cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        cores = len(_affinity())
+        room = thread_headroom()
+        if libs and (room is None or room >= len(libs) * (cores + 1) + THREAD_MARGIN):
             self._ballast = Ballast(libs, cores + 1).start()
             self.switches += 1
 
     def release(self) -> None:
+        """Let the ballast's threads go (the runtimes spin again)."""
         if self._ballast is not None:
             self._ballast.stop()
             self._ballast = None
 
-    def _watch(self) -> None:
-        prev = self._sample()
-        engaged, calm = False, 0
-        while prev is not None and not self._stop.wait(self.interval):
-            cur = self._sample()
-            if cur is None:
-                break
-            engaged, calm = next_state(engaged, calm, other_load(prev, cur))
-            prev = cur
-            self.samples += 1
-            self.throttled_samples += int(engaged)
-            if engaged:
+    def _watch(self, stop: threading.Event) -> None:
+        try:
+            prev = None if self.always else self._sample()
+            if prev is None:  # no reading (or asked to): throttled for the whole block, the safe side
                 self.engage()
-            else:
-                self.release()
-        self.release()
+                while not stop.wait(self.interval):
+                    self.samples += 1
+                    self.throttled_samples += int(self.throttled)
+                return
+            engaged, calm = False, 0
+            while not stop.wait(self.interval):
+                cur = self._sample()
+                if cur is None:
+                    engaged = True  # the load went unreadable: stay on the safe side
+                else:
+                    spare = max(0, len(_affinity()) - self.run_threads)  # cores this run leaves to others
+                    engaged, calm = next_state(engaged, calm, other_load(prev, cur) - spare)
+                    prev = cur
+                if engaged:
+                    self.engage()
+                else:
+                    self.release()
+                self.samples += 1
+                self.throttled_samples += int(self.throttled)
+        except Exception as e:  # never let the guard disturb a run: stop guarding, say why in run_info.json
+            self.failed = f"{type(e).__name__}: {e}"
+        finally:
+            self.release()
 
     def enter(self) -> None:
+        """Open a guarded block (the first one starts the watcher and resets the counts)."""
         with self._lock:
             self._users += 1
             if self._users == 1:
-                self._stop.clear()
-                self._thread = threading.Thread(target=self._watch, name="inrslam-omp-guard", daemon=True)
+                self.samples = self.throttled_samples = self.switches = 0
+                self.failed = None
+                self.run_threads = _run_threads()  # read here: torch's count is the calling thread's
+                self._stop = threading.Event()  # a watcher of an earlier block keeps its own
+                self._thread = threading.Thread(target=self._watch, args=(self._stop,), name="inrslam-omp-guard",
+                                                daemon=True)
                 self._thread.start()
 
     def exit(self) -> None:
+        """Close a guarded block (the last one stops the watcher, which lets the ballast go)."""
         with self._lock:
-            self._users -= 1
+            self._users = max(0, self._users - 1)
             if self._users == 0 and self._thread is not None:
                 self._stop.set()
-                self._thread.join(5.0)
+                self._thread.join(2 * JOIN_TIMEOUT_S + self.interval)
                 self._thread = None
 
 
@@ -300,11 +414,13 @@ if hasattr(os, "register_at_fork"):
 def load_guard() -> Iterator[LoadGuard]:
     """Adapt the wait to the machine's load while the block runs (only with the adaptive policy on Linux; otherwise
     a no-op). Nested and concurrent blocks share one guard."""
-    active = _adaptive and sys.platform.startswith("linux") and hasattr(os, "sched_getaffinity")
+    guard = _GUARD
+    active = _adaptive and sys.platform.startswith("linux")
     if active:
-        _GUARD.enter()
+        guard.always = _always
+        guard.enter()
     try:
-        yield _GUARD
+        yield guard
     finally:
         if active:
-            _GUARD.exit()
+            guard.exit()

@@ -107,7 +107,8 @@ def test_a_run_throttled_throughout_by_the_load_guard_is_byte_identical(run_a, t
     libs = omp_env.loaded_libgomp()
     if not libs:
         pytest.skip("no GNU libgomp loaded in this process")
-    ballast = omp_env.Ballast(libs, os.cpu_count() or 2).start()
+    ballast = omp_env.Ballast(libs, len(os.sched_getaffinity(0)) + 1).start()  # as the guard holds it
+    assert ballast.held == libs
     try:
         run_slam(quick_cfg(), tmp_path / "b")
     finally:
