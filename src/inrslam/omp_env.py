@@ -352,6 +352,7 @@ class LoadGuard:
             if prev is None:  # no reading (or asked to): throttled for the whole block, the safe side
                 self.engage()
                 while not stop.wait(self.interval):
+                    self.engage()  # a runtime loaded since (numba's) is throttled too
                     self.samples += 1
                     self.throttled_samples += int(self.throttled)
                 return
