@@ -192,7 +192,8 @@ def test_with_the_ballast_waiting_threads_sleep_instead_of_spinning():
 
 
 @libgomp_only
-def test_the_guard_holds_a_ballast_while_others_load_the_machine():
+def test_the_guard_holds_a_ballast_while_others_load_the_machine(monkeypatch):
+    monkeypatch.setattr(omp_env, "_run_threads", lambda: len(omp_env._affinity()))  # the run leaves no core free
     torch.ones(1 << 20).sum()
     engaged_seen = []
     guard = LoadGuard(sample=_scripted([0.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1]), interval=0.01)  # cores of others
@@ -259,7 +260,8 @@ def test_without_readings_the_guard_throttles_the_whole_block_and_lets_go_at_the
 
 
 @libgomp_only
-def test_a_failing_reading_stops_the_guard_and_lets_the_ballast_go():
+def test_a_failing_reading_stops_the_guard_and_lets_the_ballast_go(monkeypatch):
+    monkeypatch.setattr(omp_env, "_run_threads", lambda: len(omp_env._affinity()))
     torch.ones(1 << 20).sum()
     readings = iter([CpuSample(0.0, 0.0, 0.0), CpuSample(1.0, 2.0, 0.0)])
 
