@@ -349,24 +349,19 @@ class LoadGuard:
     def _watch(self, stop: threading.Event) -> None:
         try:
             prev = None if self.always else self._sample()
-            if prev is None:  # no reading (or asked to): throttled for the whole block, the safe side
+            engaged, calm = prev is None, 0  # no first reading (or asked to): throttled for the whole block
+            if engaged:
                 self.engage()
-                while not stop.wait(self.interval):
-                    self.engage()  # a runtime loaded since (numba's) is throttled too
-                    self.samples += 1
-                    self.throttled_samples += int(self.throttled)
-                return
-            engaged, calm = False, 0
             while not stop.wait(self.interval):
-                cur = self._sample()
-                if cur is None:
-                    engaged = True  # the load went unreadable: stay on the safe side
+                cur = None if prev is None else self._sample()
+                if prev is None or cur is None:
+                    engaged = True  # unreadable: stay on the safe side
                 else:
                     spare = max(0, len(_affinity()) - self.run_threads)  # cores this run leaves to others
                     engaged, calm = next_state(engaged, calm, other_load(prev, cur) - spare)
                     prev = cur
                 if engaged:
-                    self.engage()
+                    self.engage()  # again each time: a runtime loaded since (numba's) is throttled too
                 else:
                     self.release()
                 self.samples += 1
