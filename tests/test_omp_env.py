@@ -193,7 +193,7 @@ def test_with_the_ballast_waiting_threads_sleep_instead_of_spinning():
 
 @libgomp_only
 def test_the_guard_holds_a_ballast_while_others_load_the_machine(monkeypatch):
-    monkeypatch.setattr(omp_env, "_run_threads", lambda: len(omp_env._affinity()))  # the run leaves no core free
+    monkeypatch.setattr(omp_env, "_run_threads", lambda: len(omp_env.cpu_set()))  # the run leaves no core free
     torch.ones(1 << 20).sum()
     engaged_seen = []
     guard = LoadGuard(sample=_scripted([0.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1]), interval=0.01)  # cores of others
@@ -226,7 +226,7 @@ def _scripted(loads):
 
 
 def test_only_load_beyond_the_cores_a_run_leaves_free_engages(monkeypatch):
-    monkeypatch.setattr(omp_env, "_affinity", lambda: {0, 1, 2, 3})
+    monkeypatch.setattr(omp_env, "cpu_set", lambda: {0, 1, 2, 3})
     monkeypatch.setattr(omp_env, "_run_threads", lambda: 1)  # the run leaves 3 of 4 cores free
     engaged = []
     guard = LoadGuard(sample=_scripted([0.0, 2.9, 2.9, 3.6]), interval=0.01)  # the first reading is the baseline
@@ -261,7 +261,7 @@ def test_without_readings_the_guard_throttles_the_whole_block_and_lets_go_at_the
 
 @libgomp_only
 def test_a_failing_reading_stops_the_guard_and_lets_the_ballast_go(monkeypatch):
-    monkeypatch.setattr(omp_env, "_run_threads", lambda: len(omp_env._affinity()))
+    monkeypatch.setattr(omp_env, "_run_threads", lambda: len(omp_env.cpu_set()))
     torch.ones(1 << 20).sum()
     readings = iter([CpuSample(0.0, 0.0, 0.0), CpuSample(1.0, 2.0, 0.0)])
 

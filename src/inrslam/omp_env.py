@@ -175,8 +175,12 @@ def next_state(engaged: bool, calm: int, load: float) -> tuple[bool, int]:
     return (False, 0) if calm >= RELEASE_SAMPLES else (True, calm)
 
 
-def _affinity() -> set[int]:
-    return set(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else set(range(os.cpu_count() or 1))
+def cpu_set() -> set[int]:
+    """The cores this process may run on (its affinity mask where the OS has one, else all of the CPU count)."""
+    try:
+        return set(os.sched_getaffinity(0)) or {0}
+    except (AttributeError, OSError):
+        return set(range(max(1, os.cpu_count() or 1)))
 
 
 def _proc_sampler() -> Callable[[], Optional[CpuSample]]:
@@ -186,7 +190,7 @@ def _proc_sampler() -> Callable[[], Optional[CpuSample]]:
     def read() -> Optional[CpuSample]:
         try:
             with open("/proc/stat") as f:
-                busy = parse_proc_stat(f.read(), _affinity(), ticks)
+                busy = parse_proc_stat(f.read(), cpu_set(), ticks)
         except OSError:
             return None
         if busy is None:
@@ -202,9 +206,9 @@ def _run_threads() -> int:
     core."""
     torch = sys.modules.get("torch")
     try:
-        return int(torch.get_num_threads()) if torch is not None else len(_affinity())
+        return int(torch.get_num_threads()) if torch is not None else len(cpu_set())
     except Exception:  # a half-imported torch: assume every core
-        return len(_affinity())
+        return len(cpu_set())
 
 
 # -- the ballast ----------------------------------------------------------------------------------------------------
@@ -334,7 +338,7 @@ class LoadGuard:
         if self._ballast is not None and self._ballast.libs == libs:
             return
         self.release()
-        cores = len(_affinity())
+        cores = len(cpu_set())
         room = thread_headroom()
         if libs and (room is None or room >= len(libs) * (cores + 1) + THREAD_MARGIN):
             self._ballast = Ballast(libs, cores + 1).start()
@@ -357,7 +361,7 @@ class LoadGuard:
                 if prev is None or cur is None:
                     engaged = True  # unreadable: stay on the safe side
                 else:
-                    spare = max(0, len(_affinity()) - self.run_threads)  # cores this run leaves to others
+                    spare = max(0, len(cpu_set()) - self.run_threads)  # cores this run leaves to others
                     engaged, calm = next_state(engaged, calm, other_load(prev, cur) - spare)
                     prev = cur
                 if engaged:

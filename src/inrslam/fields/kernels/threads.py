@@ -7,20 +7,17 @@ it for its whole length (`thread_scope`), whatever an earlier caller of the same
 
 from __future__ import annotations
 
-import os
 from contextlib import contextmanager
 
 import torch
 
 from inrslam.errors import ConfigError
+from inrslam.omp_env import cpu_set
 
 
 def available_cores() -> int:
     """Cores this process may run on (the affinity mask where the OS has one, else the CPU count)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
+    return len(cpu_set())
 
 
 def _numba_max() -> int:
