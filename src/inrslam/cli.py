@@ -529,6 +529,9 @@ def _eval_command(args) -> int:
 
     console = Console()
     if args.run_dir:
+        from inrslam.malloc_env import tune_malloc
+
+        tune_malloc()  # the held-out renders allocate as a run does (inrslam.malloc_env)
         with _status_display(console, quiet=args.json):
             metrics = ev.evaluate_run(args.run_dir, _run_eval_config(args))
     elif args.traj or args.gt:

@@ -119,6 +119,23 @@ def test_a_run_throttled_throughout_by_the_load_guard_is_byte_identical(run_a, t
     assert set(info) == {"policy", "set_by", "adaptive", "guard"}
 
 
+def test_a_run_with_glibcs_own_malloc_settings_is_byte_identical(run_a, tmp_path):
+    """inrslam.malloc_env decides where tensors' memory comes from, never what is computed: a run in a process that
+    keeps glibc's settings (`INRSLAM_MALLOC=default`) equals `run_a`, run in this process with the run's settings."""
+    from inrslam import malloc_env
+
+    out = tmp_path / "b"
+    cmd = [sys.executable, "-m", "inrslam.cli", "run", "--preset", "quick", "--out", str(out), "--quiet", *OVERRIDES]
+    res = subprocess.run(cmd, env={**os.environ, "INRSLAM_MALLOC": "default"}, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-2000:]
+    for name in ("trajectory.txt", "mesh.ply"):
+        assert (out / name).read_bytes() == (run_a / name).read_bytes(), name
+    untuned = json.loads((out / "run_info.json").read_text())["malloc"]
+    tuned = json.loads((run_a / "run_info.json").read_text())["malloc"]
+    assert untuned == {"tuned": False, "reason": "INRSLAM_MALLOC=default"}
+    assert tuned["tuned"] is (malloc_env._glibc() is not None and os.environ.get(malloc_env.ENV) != "default")
+
+
 def test_killed_run_resumes_to_identical_result(run_a, tmp_path):
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "inrslam.cli", "run", "--preset", "quick", "--out", str(out), "--quiet", *OVERRIDES,

@@ -13,6 +13,7 @@ from inrslam.config.loader import dump_config, load_config
 from inrslam.errors import ConfigError, RunError
 from inrslam.io.atomic import write_text
 from inrslam.io.rundir import RunDir
+from inrslam.malloc_env import tune_malloc
 from inrslam.omp_env import load_guard
 from inrslam.runner.writer import RunWriter
 from inrslam.slam.system import Progress, SlamSystem
@@ -37,6 +38,7 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, 
     from inrslam.datasets import open_dataset
     from inrslam.fields.kernels.threads import resolve_threads, thread_scope
 
+    tune_malloc()  # freed tensors stay in the heap for the next iteration (inrslam.malloc_env)
     out = Path(out_dir)
     rd = RunDir(out)
     if rd.holds_run() and not overwrite:
@@ -60,6 +62,7 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
     from inrslam.datasets import open_dataset
     from inrslam.fields.kernels.threads import resolve_threads, thread_scope
 
+    tune_malloc()
     run_dir = Path(run_dir)
     rd = RunDir(run_dir)
     if not rd.holds_run():

@@ -29,6 +29,7 @@ from inrslam.errors import InrslamWarning, RunError
 from inrslam.io.atomic import append_jsonl, atomic_path, write_json
 from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import write_tum
+from inrslam.malloc_env import malloc_state
 from inrslam.omp_env import wait_policy
 from inrslam.runner.checkpoint import IDENTITY, load_checkpoint, save_checkpoint
 from inrslam.slam.system import SlamSystem
@@ -218,6 +219,7 @@ class RunWriter:
             "device": str(sysm.device),
             "threads": self.threads if self.threads is not None else torch.get_num_threads(),
             "omp_wait_policy": wait_policy(),
+            "malloc": malloc_state(),
             "poses": sysm.given.source if sysm.given is not None else {"source": "tracked"},
             "encoding": self.cfg.field.encoding,
             "render": self.cfg.render.name,
