@@ -54,12 +54,6 @@ def huber_mean(r: torch.Tensor, delta: float) -> torch.Tensor:
     return cost.sum() / max(1, cost.numel())
 
 
-def hat(w: torch.Tensor) -> torch.Tensor:
-    """(3,) -> (3, 3) skew-symmetric matrix, differentiable."""
-    z = torch.zeros((), dtype=w.dtype)
-    return torch.stack([torch.stack([z, -w[2], w[1]]), torch.stack([w[2], z, -w[0]]), torch.stack([-w[1], w[0], z])])
-
-
 def project(P: torch.Tensor, cam) -> tuple[torch.Tensor, torch.Tensor]:
     fx, fy, cx, cy = cam
     return fx * P[:, 0] / P[:, 2] + cx, fy * P[:, 1] / P[:, 2] + cy
@@ -105,6 +99,7 @@ def main() -> None:
 
     from inrslam.config import load_config
     from inrslam.datasets import open_dataset
+    from inrslam.geometry.se3 import se3_exp, so3_exp
     from inrslam.io.trajectory import read_tum
 
     torch.manual_seed(0)
@@ -135,7 +130,7 @@ def main() -> None:
 
         def camera(q):  # unknowns of similar magnitude: focal (1 + q), principal point f q, 1 cm, 0.57 deg
             cam = (K.fx * (1 + q[0]), K.fy * (1 + q[1]), K.cx + K.fx * q[2], K.cy + K.fy * q[3])
-            R = torch.linalg.matrix_exp(hat(0.01 * q[4:7])) if args.extrinsics else torch.eye(3, dtype=q.dtype)
+            R = so3_exp(0.01 * q[4:7]) if args.extrinsics else torch.eye(3, dtype=q.dtype)
             t = 0.01 * q[7:10] if args.extrinsics else torch.zeros(3, dtype=q.dtype)
             return cam, R, t
 
@@ -175,11 +170,8 @@ def main() -> None:
     cam = tuple(args.color) if args.color else nominal
     P = torch.zeros(len(items), 6, dtype=torch.float64, requires_grad=True)  # per pair: 1 cm, 0.57 deg units
 
-    def rel(k: int, T0: torch.Tensor) -> torch.Tensor:
-        M = torch.zeros(4, 4, dtype=torch.float64)
-        M[:3, :3] = hat(0.01 * P[k, 3:])
-        M[:3, 3] = 0.01 * P[k, :3]
-        return torch.linalg.matrix_exp(M) @ T0
+    def rel(k: int, T0: torch.Tensor) -> torch.Tensor:  # a left twist (rho, omega) of the poses' a -> b transform
+        return se3_exp(0.01 * P[k]) @ T0
 
     def loss_fn(grey):
         tot = []
