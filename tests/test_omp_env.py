@@ -8,10 +8,10 @@ import os
 import subprocess
 import sys
 import threading
-import time
 
 import pytest
 import torch
+from polling import wait_for
 
 from inrslam import omp_env
 from inrslam.omp_env import CpuSample, LoadGuard, next_state, other_load, parse_proc_stat
@@ -120,15 +120,6 @@ def _thread_ids() -> set[str]:
     return set(os.listdir("/proc/self/task"))
 
 
-def _wait_for(cond, timeout=5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
-
-
 libgomp_only = pytest.mark.skipif(not LIBGOMP, reason="the ballast acts on GNU libgomp (Linux torch wheels) only")
 
 
@@ -144,7 +135,7 @@ def test_the_ballast_adds_sleeping_threads_to_every_libgomp_and_frees_them():
     new = _thread_ids() - before
     assert len(new) >= 1 + 2 * len(libs)
     ballast.stop()
-    assert _wait_for(lambda: not (_thread_ids() & new))
+    assert wait_for(lambda: not (_thread_ids() & new))
 
 
 SPIN_PROBE = r"""
@@ -205,7 +196,7 @@ def test_the_guard_holds_a_ballast_while_others_load_the_machine(monkeypatch):
 
     guard.engage = engage  # type: ignore[method-assign]
     guard.enter()
-    assert _wait_for(lambda: guard.samples >= 20)
+    assert wait_for(lambda: guard.samples >= 20)
     guard.exit()
     # the first reading is the baseline; the loads 1.0, 1.0 engage, then 4 calm samples release
     assert engaged_seen and all(engaged_seen)
@@ -232,7 +223,7 @@ def test_only_load_beyond_the_cores_a_run_leaves_free_engages(monkeypatch):
     guard = LoadGuard(sample=_scripted([0.0, 2.9, 2.9, 3.6]), interval=0.01)  # the first reading is the baseline
     monkeypatch.setattr(guard, "engage", lambda: engaged.append(guard.samples))
     guard.enter()
-    assert _wait_for(lambda: guard.samples >= 5)
+    assert wait_for(lambda: guard.samples >= 5)
     guard.exit()
     assert engaged and engaged[0] == 2  # not at 2.9 cores twice (0 beyond the free 3), at 3.6 (0.6 beyond)
 
@@ -253,7 +244,7 @@ def test_without_readings_the_guard_throttles_the_whole_block_and_lets_go_at_the
     torch.ones(1 << 20).sum()
     guard = LoadGuard(sample=lambda: None, interval=0.01)
     guard.enter()
-    assert _wait_for(lambda: guard.samples >= 3)
+    assert wait_for(lambda: guard.samples >= 3)
     assert guard.throttled and guard.switches == 1
     guard.exit()
     assert not guard.throttled and guard.throttled_samples == guard.samples
@@ -273,8 +264,8 @@ def test_a_failing_reading_stops_the_guard_and_lets_the_ballast_go(monkeypatch):
 
     guard = LoadGuard(sample=sample, interval=0.01)
     guard.enter()
-    assert _wait_for(lambda: guard.failed is not None)
-    assert _wait_for(lambda: not guard.throttled)
+    assert wait_for(lambda: guard.failed is not None)
+    assert wait_for(lambda: not guard.throttled)
     guard.exit()
     assert guard.switches == 1 and guard.stats()["failed"] == "RuntimeError: unreadable"
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 import urllib.request
 from pathlib import Path
 
@@ -14,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 from headless_browser import CHROMIUM, load_page
+from polling import wait_for
 from scipy.spatial.transform import Rotation
 
 from inrslam.bench.testing import write_fake_run
@@ -192,15 +192,6 @@ def test_served_viewer_holds_each_run(viewer, runs):
     up = up_direction(runs[0].est)  # -y: the fake cameras have identity rotations
     assert np.allclose(up, [0, -1, 0]) and np.allclose(look_at, (spanned.min(0) + spanned.max(0)) / 2)
     assert (position - look_at) @ up > 1.0  # seen from above
-
-
-def wait_for(check, timeout: float = 5.0) -> bool:
-    end = time.time() + timeout
-    while time.time() < end:
-        if check():
-            return True
-        time.sleep(0.02)
-    return check()
 
 
 def test_panel_controls_change_the_scene(viewer, runs):

@@ -217,11 +217,12 @@ def test_a_first_loop_must_correct_more_than_the_verification_error():
     cfg = LoopConfig(min_correction=0.005, min_gap=100)
     small = Verification(5, True, None, np.eye(4), 0.6, 0.003, 0.2, 0.3)  # 3 mm: within a verification's own error
     large = Verification(5, True, None, np.eye(4), 0.6, 0.011, 0.0, 0.3)
-    assert not significant(small, [], cfg) and significant(large, [], cfg)
+    first = lambda loops: new_place(small.frame, loops, cfg)
+    assert not significant(small, first([]), cfg) and significant(large, first([]), cfg)
     # once a loop edge onto a nearby candidate exists, the loop is closed there: small corrections keep it closed
-    assert significant(small, [{"candidate": 0, "frame": 270}], cfg)
-    assert not significant(small, [{"candidate": 200, "frame": 400}], cfg)  # a different place
-    assert significant(small, [], LoopConfig(min_correction=0.0))  # off
+    assert significant(small, first([{"candidate": 0, "frame": 270}]), cfg)
+    assert not significant(small, first([{"candidate": 200, "frame": 400}]), cfg)  # a different place
+    assert significant(small, True, LoopConfig(min_correction=0.0))  # off
 
 
 def test_color_disagreement_is_lowest_at_the_true_relative_pose():

@@ -175,13 +175,13 @@ def new_place(candidate: int, loops: list[dict], cfg: LoopConfig) -> bool:
     return not any(abs(int(lp["candidate"]) - candidate) < cfg.min_gap for lp in loops)
 
 
-def significant(v: Verification, loops: list[dict], cfg: LoopConfig) -> bool:
-    """Whether a verified loop is worth an edge: it moves the keyframe at least `cfg.min_correction` metres, or its
-    candidate is not a `new_place` (that loop is closed: further edges keep it closed). A first loop onto a place
-    that corrects less than the verification's own error would only add that error to a trajectory that had not
-    drifted there. Example: min_correction 5 mm, no edges yet, a 3 mm correction -> False; an edge onto frame 0
-    exists and this candidate is frame 5 -> True."""
-    return v.correction >= cfg.min_correction or not new_place(v.frame, loops, cfg)
+def significant(v: Verification, first: bool, cfg: LoopConfig) -> bool:
+    """Whether a verified loop is worth an edge: it moves the keyframe at least `cfg.min_correction` metres, or it is
+    not the `first` loop onto its place (`new_place`: that loop is closed, further edges keep it closed). A first loop
+    onto a place that corrects less than the verification's own error would only add that error to a trajectory that
+    had not drifted there. Example: min_correction 5 mm, a first loop correcting 3 mm -> False; the same onto a place
+    with an edge already -> True."""
+    return v.correction >= cfg.min_correction or not first
 
 
 def color_confirms(loop_e: float, estimate_e: float, first: bool, margin: float) -> bool:

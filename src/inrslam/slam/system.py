@@ -676,8 +676,8 @@ class SlamSystem:
         for c in cands:
             cand = stage_clouds(depth_points(frames[c.frame].depth, frame.intrinsics, g), g, lc)
             v = verify(cand, cur, est[c.frame], est[i], path_length(est, c.frame, i), c.frame, g, lc)
-            color = {}
-            if v.ok and not significant(v, s.loops, lc):
+            color, first = {}, new_place(c.frame, s.loops, lc)  # the first loop onto this place?
+            if v.ok and not significant(v, first, lc):
                 v = dataclasses.replace(v, ok=False, reason="small_correction")
             if v.ok and grey_k is not None:
                 grey_c = grey(frames[c.frame].rgb)
@@ -685,7 +685,7 @@ class SlamSystem:
                 est_e = color_disagreement(frame.depth, grey_k, grey_c, np.linalg.solve(est[c.frame], est[i]),
                                             frame.intrinsics)
                 color = {"color_loop": round(loop_e, 5), "color_estimate": round(est_e, 5)}
-                if not color_confirms(loop_e, est_e, new_place(c.frame, s.loops, lc), lc.color_margin):
+                if not color_confirms(loop_e, est_e, first, lc.color_margin):
                     v = dataclasses.replace(v, ok=False, reason="color")
             self._log({"type": "loop_candidate", "frame": i, "distance_m": round(c.distance, 4),
                        "angle_deg": round(c.angle, 2), "overlap": round(c.overlap, 4), **v.record(), **color})
