@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import trimesh
 import yaml
+from polling import wait_for
 
 import inrslam
 from inrslam.bench.sweep import run_sweep
@@ -149,9 +150,7 @@ def test_ctrl_c_in_run_says_how_to_resume_and_resume_completes(work, relative_ru
     proc = subprocess.Popen([sys.executable, "-m", "inrslam.cli", "run", "--data", "data/room_rep", "--out", "g",
                              *RUN_ARGS], cwd=work, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True, preexec_fn=_default_sigint)
-    deadline = time.time() + 240
-    while time.time() < deadline and proc.poll() is None and not RunDir(out).has_checkpoint():
-        time.sleep(0.02)
+    wait_for(lambda: proc.poll() is not None or RunDir(out).has_checkpoint(), 240, 0.02)
     assert proc.poll() is None, f"run ended before it could be interrupted: {proc.stderr.read()[-2000:]}"
     os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole foreground group
     stdout, stderr = proc.communicate(timeout=120)
@@ -173,9 +172,7 @@ def test_ctrl_c_in_bench_keeps_finished_runs_and_says_how_to_resume(tmp_path):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                             preexec_fn=_default_sigint)
     hanging = out / "room__dense__direct__quick__s1" / "started"
-    deadline = time.time() + 120
-    while time.time() < deadline and proc.poll() is None and not hanging.exists():
-        time.sleep(0.02)
+    wait_for(lambda: proc.poll() is not None or hanging.exists(), 120, 0.02)
     assert proc.poll() is None, proc.stderr.read()[-2000:]
     time.sleep(0.2)
     os.killpg(proc.pid, signal.SIGINT)

@@ -7,11 +7,11 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from polling import wait_for
 
 from inrslam.config import load_config
 from inrslam.io.trajectory import read_tum
@@ -142,12 +142,8 @@ def test_killed_run_resumes_to_identical_result(run_a, tmp_path):
            "output.tensorboard=true"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     ckpt = out / "checkpoints" / "latest.pt"
-    deadline = time.time() + 300
     # wait until at least the checkpoint after frame 4 exists, then kill the process hard
-    while time.time() < deadline and proc.poll() is None:
-        if ckpt.exists() and _logged_frames(out) >= 5:
-            break
-        time.sleep(0.05)
+    wait_for(lambda: proc.poll() is not None or (ckpt.exists() and _logged_frames(out) >= 5), 300, 0.05)
     assert proc.poll() is None, f"run finished before it could be killed: {proc.stderr.read().decode()[-2000:]}"
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
