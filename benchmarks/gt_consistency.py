@@ -35,10 +35,10 @@ def main() -> None:
     from inrslam.config import load_config
     from inrslam.data.frame import repeated_streams
     from inrslam.datasets import open_dataset
-    from inrslam.eval.trajectory import ate, drift_per_100
+    from inrslam.eval.trajectory import ate, drift_per_100, rotation_angle_deg
     from inrslam.io.trajectory import read_tum
     from inrslam.slam.config import GicpConfig
-    from inrslam.slam.registration import PreparedCloud, depth_points, register, rotation_deg
+    from inrslam.slam.registration import PreparedCloud, depth_points, register
 
     cfg = load_config(preset="paper", overrides=[f"data.path={args.data}", f"data.dataset={args.dataset}",
                                                  f"data.max_frames={args.max_frames}"])
@@ -60,7 +60,7 @@ def main() -> None:
             reg = register(prev_cloud, cloud, rel_gt, g)
             diff = np.linalg.inv(rel_gt) @ reg.T_target_source
             rows.append((i, 1e3 * np.linalg.norm(rel_gt[:3, 3]), 1e3 * np.linalg.norm(diff[:3, 3]),
-                         rotation_deg(diff[:3, :3]), reg.ok))
+                         float(rotation_angle_deg(diff[:3, :3])), reg.ok))
         prev, prev_cloud = f, cloud
     gt = np.stack(gt)
     ok = [r for r in rows if r[4]]

@@ -17,9 +17,9 @@ import numpy as np
 
 def edge_errors(run_dir: Path) -> list[tuple[int, int, float, float]]:
     """(candidate, frame, translation error cm, rotation error deg) of every loop edge of a run."""
+    from inrslam.eval.trajectory import rotation_angle_deg
     from inrslam.io.trajectory import read_tum
     from inrslam.runner.checkpoint import load_checkpoint
-    from inrslam.slam.registration import rotation_deg
 
     state = load_checkpoint(run_dir / "checkpoints" / "latest.pt")
     _, gt = read_tum(run_dir / "trajectory_gt.txt")
@@ -27,7 +27,7 @@ def edge_errors(run_dir: Path) -> list[tuple[int, int, float, float]]:
     for lp in state.get("loops", []):
         a, b, T = lp["candidate"], lp["frame"], np.asarray(lp["T"], dtype=np.float64)
         G = np.linalg.solve(gt[a], gt[b])
-        ang = rotation_deg(T[:3, :3] @ G[:3, :3].T)
+        ang = float(rotation_angle_deg(T[:3, :3] @ G[:3, :3].T))  # atan2 form: exact near 0
         out.append((a, b, float(np.linalg.norm(T[:3, 3] - G[:3, 3]) * 100), ang))
     return out
 
@@ -39,8 +39,8 @@ def main() -> None:
     print("| run | loop edges | max error [cm] | max error [deg] | median [cm] |")
     print("|:--|--:|--:|--:|--:|")
     for run in args.runs:
-        if not (run / "checkpoints" / "latest.pt").is_file():
-            print(f"| {run.name} | not a finished run directory with a checkpoint (skipped) | | | |")
+        if not (run / "checkpoints" / "latest.pt").is_file() or not (run / "trajectory_gt.txt").is_file():
+            print(f"| {run.name} | not a finished run directory (checkpoint and trajectory_gt.txt; skipped) | | | |")
             continue
         e = edge_errors(run)
         if not e:

@@ -45,8 +45,9 @@ def pairs_of(run: Path) -> list[tuple[int, int]]:
 def main() -> None:
     from inrslam.config import load_config
     from inrslam.datasets import open_dataset
+    from inrslam.eval.trajectory import rotation_angle_deg
     from inrslam.slam.loop_closure import stage_clouds, verify
-    from inrslam.slam.registration import depth_points, rotation_deg
+    from inrslam.slam.registration import depth_points
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", type=Path)
@@ -71,7 +72,8 @@ def main() -> None:
                 v = verify(stage_clouds(pts_c, gs, lcs), stage_clouds(pts_i, gs, lcs), fc.c2w, start, 1.0, c, gs, lcs)
                 dt = time.perf_counter() - t0
                 D = np.linalg.solve(G, v.T_cand_cur)
-                rows[name].append((v.ok, float(np.linalg.norm(D[:3, 3]) * 100), rotation_deg(D[:3, :3]), dt))
+                ang = float(rotation_angle_deg(D[:3, :3]))
+                rows[name].append((v.ok, float(np.linalg.norm(D[:3, 3]) * 100), ang, dt))
     print(f"{len(rows['now'])} candidate pairs from {len(args.runs)} run(s), start {args.perturb_cm} cm / "
           f"{args.perturb_deg} deg off the ground truth")
     print("| setting | accepted | true (< 1 cm) | false | true: median / p90 error [cm] | [deg] | ms per candidate |")

@@ -63,6 +63,20 @@ def test_rotation_angle():
     assert se3.rotation_angle_deg(R).item() == pytest.approx(30.0)
 
 
+def test_nearest_rigid_np_projects_a_scaled_or_sheared_rotation_back_onto_it():
+    R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = 1.001 * R, [1.0, 2.0, 3.0]
+    out = se3.nearest_rigid_np(T)
+    assert np.allclose(out[:3, :3], R, atol=1e-12) and np.allclose(out[:3, 3], [1, 2, 3]) and out[3, 3] == 1
+    S = np.eye(3) + 1e-3 * np.array([[0, 1, 0], [1, 0, 0], [0, 0, 0]])  # symmetric shear: polar factor R S -> R
+    T[:3, :3] = R @ S
+    assert np.allclose(se3.nearest_rigid_np(T)[:3, :3], R, atol=1e-12)
+    assert np.linalg.det(se3.nearest_rigid_np(np.diag([-1.0, 1.0, 1.0, 1.0]))[:3, :3]) == pytest.approx(1.0)  # no mirror
+    with pytest.raises(ValueError, match="4, 4"):
+        se3.nearest_rigid_np(np.eye(3))
+
+
 def test_opengl_opencv_is_involution_and_flips_axes():
     T = np.eye(4)
     T[:3, 3] = [1, 2, 3]

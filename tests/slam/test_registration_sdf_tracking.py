@@ -94,6 +94,28 @@ def test_gicp_recovers_a_known_rigid_motion_between_two_synthetic_frames():
         assert reg.fitness > 0.9 and reg.degeneracy > cfg.degeneracy_ratio
 
 
+def test_gicp_from_a_scaled_start_returns_a_rigid_pose_unless_told_not_to():
+    """small_gicp keeps its start's scale / shear; a constant-velocity prediction of rounded poses has some, and
+    frame after frame it compounds, so `rigid_init` projects the start onto SE(3) first."""
+    c2w_a = look_at((0.3, 0.2, 1.2), (1.8, 1.7, 0.3))
+    c2w_b = c2w_a @ relative_motion(np.random.default_rng(4))
+    true = np.linalg.inv(c2w_a) @ c2w_b
+    start = np.eye(4)
+    start[:3, :3] *= 1.001  # a start 0.1 % off orthonormal
+    for rigid in (True, False):
+        cfg = GicpConfig(downsample=0.02, pixel_stride=1, rigid_init=rigid)
+        a = prepare_depth(plane_depth(CORNER, c2w_a), INTR, cfg)
+        b = prepare_depth(plane_depth(CORNER, c2w_b), INTR, cfg)
+        reg = register(a, b, start, cfg)
+        R = reg.T_target_source[:3, :3]
+        off = np.abs(R @ R.T - np.eye(3)).max()
+        if rigid:
+            assert reg.ok and off < 1e-9
+            assert np.linalg.norm(reg.T_target_source[:3, 3] - true[:3, 3]) < 1e-3
+        else:
+            assert off > 1e-3  # the start's 0.1 % scale, kept
+
+
 def test_degeneracy_check_rejects_a_single_plane_view():
     cfg = GicpConfig(downsample=0.02, pixel_stride=1)
     c2w_a = look_at((0.0, 0.0, 1.2), (2.0, 0.1, 1.1))

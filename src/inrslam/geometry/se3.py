@@ -1,4 +1,4 @@
-"""SE(3) helpers and pose parameterisations (torch, differentiable, device-agnostic).
+"""SE(3) helpers and pose parameterisations (torch, differentiable, device-agnostic; `_np` functions: numpy).
 
 Quaternions are (w, x, y, z), scalar first, and need not be unit length: the rotation matrix uses the
 factor 2/|q|^2 so the norm drops out (as the paper's code; the default pose parameterisation). The tangent-space
@@ -8,6 +8,7 @@ option (docs/spec.md §13.15).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -124,4 +125,17 @@ def mean_pose(poses: Tensor) -> Tensor:
     out = torch.eye(4, dtype=poses.dtype, device=poses.device)
     out[:3, :3] = U @ torch.diag(fix) @ Vh
     out[:3, 3] = poses[:, :3, 3].mean(dim=0)
+    return out
+
+
+def nearest_rigid_np(T: np.ndarray) -> np.ndarray:
+    """(4, 4) pose -> float64 copy whose rotation is the rotation nearest (Frobenius) to T's 3x3 block, by SVD
+    (R = U diag(1, 1, det(U Vt)) Vt); translation and bottom row kept. Undoes the scale / shear a rotation gathers
+    from products of rounded or extrapolated poses. Example: 1.001 x a rotation -> that rotation."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"nearest_rigid_np: expected a (4, 4) pose, got {T.shape}")
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = T.copy()
+    out[:3, :3] = U @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))]) @ Vt
     return out

@@ -52,6 +52,8 @@ class GicpConfig:
     kf_angle: float = 10.0  # ... or this much rotation, degrees ...
     kf_fitness: float = 0.85  # ... or when the inlier fraction drops below this
     local_map_keyframes: int = 5  # target = local_map: GICP keyframes merged into the target
+    rigid_init: bool = True  # GICP starts from the nearest rigid pose to its prediction (small_gicp keeps any
+    # scale / shear of its start, and constant-velocity predictions compound it: off, poses drift from orthonormal)
 
 
 

@@ -19,6 +19,7 @@ import numpy as np
 from inrslam.errors import ConfigError
 from inrslam.geometry.depth_filter import bilateral_depth, estimate_depth_noise
 from inrslam.geometry.pinhole import backproject_np
+from inrslam.geometry.se3 import nearest_rigid_np
 from inrslam.slam.config import GicpConfig
 
 
@@ -112,8 +113,9 @@ def prepare_depth(depth: np.ndarray, intr, cfg: GicpConfig) -> PreparedCloud:
 
 def register(target: PreparedCloud, source: PreparedCloud, init_T: np.ndarray, cfg: GicpConfig) -> Registration:
     """GICP of `source` onto `target` from `init_T` (source -> target, (4, 4)); checks fitness, degeneracy and the
-    size of the correction. A failed check still returns GICP's pose, with ok False and the reason."""
-    init_T = np.asarray(init_T, dtype=np.float64)
+    size of the correction. A failed check still returns GICP's pose, with ok False and the reason. With
+    `cfg.rigid_init` the start is projected onto SE(3) first (small_gicp's result keeps its start's scale / shear)."""
+    init_T = nearest_rigid_np(init_T) if cfg.rigid_init else np.asarray(init_T, dtype=np.float64)
     min_pts = max(50, 3 * cfg.neighbors)
     if target.size < min_pts or source.size < min_pts:
         return Registration(init_T.copy(), False, "too_few_points", 0.0, 0.0, 0)
