@@ -61,6 +61,11 @@ def test_quat_to_matrix_gradcheck():
 def test_rotation_angle():
     R = torch.from_numpy(Rotation.from_rotvec([0, 0, math.radians(30)]).as_matrix())
     assert se3.rotation_angle_deg(R).item() == pytest.approx(30.0)
+    small = torch.from_numpy(Rotation.from_rotvec([1e-6, 0, 0]).as_matrix())  # acos of the trace reads 0 here
+    assert se3.rotation_angle_deg(small).item() == pytest.approx(math.degrees(1e-6), rel=1e-6)
+    assert se3.rotation_angle_deg(1.0001 * small).item() == pytest.approx(math.degrees(1e-6), rel=1e-3)  # scaled
+    flip = torch.from_numpy(Rotation.from_rotvec([0, math.pi, 0]).as_matrix())
+    assert se3.rotation_angle_deg(flip).item() == pytest.approx(180.0)
 
 
 def test_nearest_rigid_np_projects_a_scaled_or_sheared_rotation_back_onto_it():

@@ -106,9 +106,12 @@ def compose_qt(q: Tensor, t: Tensor) -> Tensor:
 
 
 def rotation_angle_deg(R: Tensor) -> Tensor:
-    """(..., 3, 3) rotation -> (...,) angle in degrees (clamped acos of (tr - 1) / 2)."""
+    """(..., 3, 3) rotation -> (...,) angle in degrees, atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2): accurate near 0,
+    where acos of the trace loses half the digits and reads a slightly non-orthonormal R as 0 or too large (the
+    numpy twin is `inrslam.eval.trajectory.rotation_angle_deg`)."""
+    w = torch.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
     tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
-    return torch.rad2deg(torch.acos(((tr - 1) / 2).clamp(-1.0, 1.0)))
+    return torch.rad2deg(torch.atan2(0.5 * torch.linalg.vector_norm(w, dim=-1), 0.5 * (tr - 1)))
 
 
 def mean_pose(poses: Tensor) -> Tensor:
