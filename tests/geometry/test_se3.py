@@ -77,7 +77,8 @@ def test_nearest_rigid_np_projects_a_scaled_or_sheared_rotation_back_onto_it():
     S = np.eye(3) + 1e-3 * np.array([[0, 1, 0], [1, 0, 0], [0, 0, 0]])  # symmetric shear: polar factor R S -> R
     T[:3, :3] = R @ S
     assert np.allclose(se3.nearest_rigid_np(T)[:3, :3], R, atol=1e-12)
-    assert np.linalg.det(se3.nearest_rigid_np(np.diag([-1.0, 1.0, 1.0, 1.0]))[:3, :3]) == pytest.approx(1.0)  # no mirror
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    assert np.linalg.det(se3.nearest_rigid_np(mirror)[:3, :3]) == pytest.approx(1.0)  # a rotation, not a reflection
     with pytest.raises(ValueError, match="4, 4"):
         se3.nearest_rigid_np(np.eye(3))
 
