@@ -16,6 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from inrslam.eval.config import Alignment
+from inrslam.geometry.se3 import rotation_angle_deg_np as rotation_angle_deg  # re-exported: benchmarks read it here
 
 # ----------------------------------------------------------------------------------------------------------------
 # alignment
@@ -244,18 +245,6 @@ def drift_per_100(est_c2w: np.ndarray, gt_c2w: np.ndarray) -> dict:
     e = np.linalg.norm(p - q, axis=1)
     k = (used - i0).astype(np.float64)
     return {"drift_m_per_100": float(100.0 * (k @ e) / (k @ k)), "final_m": float(e[-1])}
-
-
-def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation -> (...,) angle in degrees, θ = atan2(|vee(R − Rᵀ)| / 2, (tr R − 1) / 2).
-
-    The atan2 form is accurate near 0 and π (arccos of the trace loses half the digits near 0).
-    """
-    R = np.asarray(R, dtype=np.float64)
-    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    sin = 0.5 * np.linalg.norm(w, axis=-1)
-    cos = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
-    return np.degrees(np.arctan2(sin, cos))
 
 
 def _inv(T: np.ndarray) -> np.ndarray:

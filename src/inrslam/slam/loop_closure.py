@@ -15,9 +15,10 @@ import numpy as np
 
 from inrslam.errors import ConfigError
 from inrslam.geometry.pinhole import project_np
+from inrslam.geometry.se3 import rotation_angle_deg_np
 from inrslam.slam import pose_graph
 from inrslam.slam.config import GicpConfig, LoopConfig
-from inrslam.slam.registration import PreparedCloud, register, rotation_deg
+from inrslam.slam.registration import PreparedCloud, register
 
 
 def view_angle_deg(Ta: np.ndarray, Tb: np.ndarray) -> float:
@@ -163,7 +164,7 @@ def verify(cand: list[PreparedCloud], cur: list[PreparedCloud], T_w_cand: np.nda
         T = reg.T_target_source
     moved = T_w_cand @ T
     corr_m = float(np.linalg.norm(moved[:3, 3] - T_w_cur[:3, 3]))
-    ang = rotation_deg(moved[:3, :3] @ T_w_cur[:3, :3].T)
+    ang = float(rotation_angle_deg_np(moved[:3, :3] @ T_w_cur[:3, :3].T))
     ok = corr_m <= bound and ang <= cfg.max_correction_angle
     return Verification(frame, ok, None if ok else "correction", T, reg.fitness, corr_m, ang, bound)
 

@@ -19,7 +19,7 @@ import numpy as np
 from inrslam.errors import ConfigError
 from inrslam.geometry.depth_filter import bilateral_depth, estimate_depth_noise
 from inrslam.geometry.pinhole import backproject_np
-from inrslam.geometry.se3 import nearest_rigid_np
+from inrslam.geometry.se3 import nearest_rigid_np, rotation_angle_deg_np
 from inrslam.slam.config import GicpConfig
 
 
@@ -69,15 +69,10 @@ def filtered_depth(depth: np.ndarray, cfg: GicpConfig, stride: int = 1, noise: f
     return bilateral_depth(depth, cfg.depth_filter, s, stride=stride)
 
 
-def rotation_deg(R: np.ndarray) -> float:
-    """Angle of a rotation (3, 3), degrees: arccos((trace R - 1) / 2)."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
-
-
 def moved_beyond(T: np.ndarray, dist: float, angle_deg: float) -> bool:
     """Whether a relative pose (4, 4) moves more than `dist` metres or rotates more than `angle_deg` degrees (the
     GICP keyframe renewal rule)."""
-    return bool(np.linalg.norm(T[:3, 3]) > dist or rotation_deg(T[:3, :3]) > angle_deg)
+    return bool(np.linalg.norm(T[:3, 3]) > dist or float(rotation_angle_deg_np(T[:3, :3])) > angle_deg)
 
 
 def hessian_degeneracy(H: np.ndarray) -> float:
