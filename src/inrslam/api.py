@@ -1,7 +1,7 @@
 """The Python API, one call per job (`import inrslam`; the CLI is a thin layer over the same functions):
 
     import inrslam
-    run = inrslam.run("runs/room", preset="fast", overrides=["data.max_frames=50"])   # -> LoadedRun
+    run = inrslam.run("runs/room-fast", preset="fast", overrides=["data.max_frames=50"])   # -> LoadedRun
     run.metrics["ate_rmse_m"]; run.est; run.render(run.est[10])                        # inspect
     other = inrslam.load_run("runs/room-paper")                                        # compare
 

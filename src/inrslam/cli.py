@@ -1,6 +1,6 @@
 """Command-line interface. Thin: every command calls a plain Python function.
 
-    inrslam run --data builtin:room --out runs/room
+    inrslam run --data builtin:room --out runs/room-paper
     inrslam scenes
     inrslam eval RUN_DIR | --traj EST --gt GT | --mesh REC.ply --gt-mesh GT.ply [--cameras GT_TRAJ]
     inrslam bench SPEC.yaml --out DIR [--jobs N] [--executor local|ray|slurm]

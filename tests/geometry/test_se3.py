@@ -74,9 +74,10 @@ def test_rotation_angle_deg_np_matches_the_torch_form_and_is_exact_near_zero():
     assert ang.shape == (16,)
     np.testing.assert_allclose(ang, se3.rotation_angle_deg(torch.from_numpy(rots)).numpy(), rtol=1e-12, atol=1e-10)
     np.testing.assert_allclose(ang, np.degrees(Rotation.from_matrix(rots).magnitude()), atol=1e-9)
-    small = Rotation.from_rotvec([0, 2e-7, 0]).as_matrix()  # arccos of the trace reads 0 here
-    assert float(se3.rotation_angle_deg_np(small)) == pytest.approx(math.degrees(2e-7), rel=1e-6)
-    assert float(se3.rotation_angle_deg_np(1.001 * small)) == pytest.approx(math.degrees(2e-7), rel=2e-3)  # scaled
+    small = Rotation.from_rotvec([0, 1e-8, 0]).as_matrix()
+    assert np.arccos(np.clip((np.trace(small) - 1) / 2, -1, 1)) == 0.0  # the textbook form reads 0 here
+    assert float(se3.rotation_angle_deg_np(small)) == pytest.approx(math.degrees(1e-8), rel=1e-6)
+    assert float(se3.rotation_angle_deg_np(1.001 * small)) == pytest.approx(math.degrees(1e-8), rel=2e-3)  # scaled
 
 
 def test_nearest_rigid_np_projects_a_scaled_or_sheared_rotation_back_onto_it():
