@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from inrslam.eval.config import Alignment
-from inrslam.geometry.se3 import rotation_angle_deg_np as rotation_angle_deg  # re-exported: benchmarks read it here
+from inrslam.geometry.angles import rotation_angle_deg_np as rotation_angle_deg  # re-exported: benchmarks read it here
 
 # ----------------------------------------------------------------------------------------------------------------
 # alignment

@@ -108,20 +108,10 @@ def compose_qt(q: Tensor, t: Tensor) -> Tensor:
 def rotation_angle_deg(R: Tensor) -> Tensor:
     """(..., 3, 3) rotation -> (...,) angle in degrees, atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2): accurate near 0,
     where acos of the trace loses half the digits and reads a slightly non-orthonormal R as 0 or too large (the
-    numpy twin is `rotation_angle_deg_np`)."""
+    numpy twin is `inrslam.geometry.angles.rotation_angle_deg_np`)."""
     w = torch.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
     tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
     return torch.rad2deg(torch.atan2(0.5 * torch.linalg.vector_norm(w, dim=-1), 0.5 * (tr - 1)))
-
-
-def rotation_angle_deg_np(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation -> (...,) float64 angle in degrees, the same atan2 form as `rotation_angle_deg` (numpy:
-    keyframe renewal, loop verification, evaluation)."""
-    R = np.asarray(R, dtype=np.float64)
-    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    sin = 0.5 * np.linalg.norm(w, axis=-1)
-    cos = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
-    return np.degrees(np.arctan2(sin, cos))
 
 
 def mean_pose(poses: Tensor) -> Tensor:

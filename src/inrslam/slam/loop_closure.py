@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from inrslam.errors import ConfigError
+from inrslam.geometry.angles import rotation_angle_deg_np
 from inrslam.geometry.pinhole import project_np
-from inrslam.geometry.se3 import rotation_angle_deg_np
 from inrslam.slam import pose_graph
 from inrslam.slam.config import GicpConfig, LoopConfig
 from inrslam.slam.registration import PreparedCloud, register

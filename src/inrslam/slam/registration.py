@@ -17,9 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from inrslam.errors import ConfigError
+from inrslam.geometry.angles import rotation_angle_deg_np
 from inrslam.geometry.depth_filter import bilateral_depth, estimate_depth_noise
 from inrslam.geometry.pinhole import backproject_np
-from inrslam.geometry.se3 import nearest_rigid_np, rotation_angle_deg_np
+from inrslam.geometry.se3 import nearest_rigid_np
 from inrslam.slam.config import GicpConfig
 
 
