@@ -11,6 +11,7 @@ import pytest
 import trimesh
 from PIL import Image
 
+from inrslam.geometry.angles import rotation_angle_deg_np
 from inrslam.geometry.pinhole import backproject_np, project_np
 from inrslam.io.trajectory import read_tum
 from inrslam.scenes import DEFAULT_SCENE, SceneConfig, export_replica, export_tum, list_scenes, load_scene, store
@@ -36,8 +37,7 @@ def room(cache):
 
 
 def _rot_deg(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
-    rel = np.einsum("...ji,...jk->...ik", Ra, Rb)
-    return np.degrees(np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1) / 2, -1, 1)))
+    return rotation_angle_deg_np(np.einsum("...ji,...jk->...ik", Ra, Rb))
 
 
 def distance_to_mesh(points: np.ndarray, mesh: trimesh.Trimesh, max_dist: float = np.inf,
