@@ -2,7 +2,10 @@
 rotation (as a rotation vector) and translation of the estimate are fitted as s x the ground truth's (least squares);
 s < 1 means the tracker under-estimates the motion (a biased camera model or registration, not random error). Also
 the net rotation from the first frame, estimate over reference (median over frames turned > 5 degrees): when it is
-about s at every frame, the orientation error is that bias accumulated, not a random walk. Never asserted in tests.
+about s at every frame, the orientation error is that bias accumulated, not a random walk. And two views of the
+positions: the 90th percentile of the translation error over 10 frames (`eval.trajectory.rpe`, delta 10: how noisy
+the relative motions are) and the scale of a similarity alignment of the estimate onto the reference (> 1: the
+estimated path is too short). Never asserted in tests.
 
     python benchmarks/rotation_scale.py runs/acc_7s runs/gicp_7s       # run directories with trajectory_gt.txt
 """
@@ -44,13 +47,17 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--gap", type=int, default=5)
     args = ap.parse_args()
+    from inrslam.eval.trajectory import align_umeyama, rpe
     from inrslam.io.trajectory import read_tum
 
-    print("| run | rotation scale | translation scale | net rotation ratio |\n|:--|--:|--:|--:|")
+    print("| run | rotation scale | translation scale | net rotation ratio | 10-frame RPE p90 [mm] | similarity scale |")
+    print("|:--|--:|--:|--:|--:|--:|")
     for run in args.runs:
         est, gt = read_tum(run / "trajectory.txt")[1], read_tum(run / "trajectory_gt.txt")[1]
         r, t = motion_scale(est, gt, args.gap)
-        print(f"| {run.name} | {r:.3f} | {t:.3f} | {net_rotation_ratio(est, gt):.3f} |")
+        p90 = 1e3 * float(np.percentile(rpe(est, gt, delta=10)["trans_errors"], 90))
+        s = align_umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale=True)[2]
+        print(f"| {run.name} | {r:.3f} | {t:.3f} | {net_rotation_ratio(est, gt):.3f} | {p90:.1f} | {s:.4f} |")
 
 
 if __name__ == "__main__":

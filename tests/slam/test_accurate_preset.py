@@ -254,6 +254,15 @@ def test_gicp_prior_changes_the_photometric_refinement_only_when_set(noisy, tmp_
     assert (out / "trajectory.txt").read_text() != (noisy / "trajectory.txt").read_text()
 
 
+def test_depth_weight_adds_depth_residuals_to_the_photometric_refinement_only_when_set(noisy, tmp_path_factory):
+    out = run(tmp_path_factory, "photo_depth", "accurate", NOISY + ["slam.photo.depth_weight=1"])
+    with_depth, without = tracks(out), tracks(noisy)
+    assert all("photo_depth_points" not in r for r in without)
+    # every refinement also had depth residuals, at most one per reference point
+    assert all(0 < r["photo_depth_points"] <= r["photo_points"] for r in with_depth)
+    assert (out / "trajectory.txt").read_text() != (noisy / "trajectory.txt").read_text()
+
+
 @pytest.fixture(scope="module")
 def kf_refs3(tmp_path_factory):
     """With kf_refs 3 each new photometric keyframe is also aligned onto the two keyframes before its reference and

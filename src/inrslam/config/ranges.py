@@ -79,6 +79,7 @@ RANGES: dict[str, Rule] = {
     "slam.photo.jump_factor": NONNEG, "slam.photo.jump_window": COUNT, "slam.photo.jump_rms_factor": NONNEG,
     "slam.photo.kf_dist": POS, "slam.photo.kf_angle": POS, "slam.photo.kf_rms_factor": NONNEG,
     "slam.photo.kf_refs": COUNT, "slam.photo.track_refs": COUNT, "slam.photo.gicp_prior": NONNEG,
+    "slam.photo.depth_weight": NONNEG,
     "slam.sdf_track.iters": NONNEG, "slam.sdf_track.points": COUNT, "slam.sdf_track.huber": POS,
     "slam.sdf_track.band": POS, "slam.sdf_track.min_points": COUNT, "slam.sdf_track.tol_trans": POS,
     "slam.sdf_track.tol_rot": POS, "slam.sdf_track.damping": NONNEG, "slam.sdf_track.max_step": POS,

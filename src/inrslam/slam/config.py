@@ -104,6 +104,9 @@ class PhotoConfig:
     track_refs: int = 1  # each frame is aligned onto the last track_refs photometric keyframes at once (their
     # residuals in one Gauss-Newton; 1 = the current one only; `accurate`: 2, docs/accurate.md)
     affine_light: bool = False  # also fit an affine brightness change (1 + a) I + b of the reference (exposure)
+    depth_weight: float = 0.0  # weight of a depth residual per reference point beside its intensity residual (the
+    # current frame's depth where the point lands against the point's depth; 1 = as an intensity residual of the
+    # same robust standard score; 0 = off; docs/accurate.md)
     gicp_prior: float = 0.0  # weight of GICP's pose and Hessian as a prior of the alignment (0 = off; 1 = each
     # residual's own variance; docs/accurate.md)
     skip_stale: bool = False  # a frame whose colour or depth is bit-identical to the previous frame's (a dropped

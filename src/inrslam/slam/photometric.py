@@ -36,13 +36,15 @@ LUMA = (0.299, 0.587, 0.114)
 @dataclass
 class PhotoLevel:
     """One pyramid level: grey image, its central-difference gradients and depth, all (H, W) float64; pinhole
-    (fx, fy, cx, cy) in this level's pixels."""
+    (fx, fy, cx, cy) in this level's pixels; for the depth residual (`depth_residuals`) the depth's stack (4, H, W)
+    of `depth_stack`."""
 
     gray: Tensor
     grad_u: Tensor
     grad_v: Tensor
     depth: Tensor
     K: tuple[float, float, float, float]
+    depth_stack: Tensor | None = None
 
 
 @dataclass
@@ -55,6 +57,7 @@ class PhotoResult:
     rms: float  # Huber-weighted RMS intensity residual at the finest level (nan if none)
     fallback: str | None  # "photo_few_points" / "photo_nan" (input pose kept), or None
     light: tuple[float, float] | None = None  # affine brightness (alpha, beta) (slam.photo.affine_light)
+    n_depth: int | None = None  # valid depth residuals of the first reference, finest level (slam.photo.depth_weight)
 
 
 def grey(rgb: np.ndarray) -> np.ndarray:
@@ -85,6 +88,24 @@ def _half_depth(d: Tensor) -> Tensor:
     return torch.where((blocks > 0).all(dim=0), blocks.mean(dim=0), torch.zeros_like(blocks[0]))
 
 
+DEPTH_EDGE = 0.05  # a depth step above this fraction of the depth between neighbouring pixels is an edge
+
+
+def depth_stack(d: Tensor, edge: float = DEPTH_EDGE) -> Tensor:
+    """(H, W) depth in metres (0 = invalid) -> (4, H, W): depth, central differences along u and v, and a validity
+    map, 1 where the pixel and its four neighbours have depth and no neighbour differs from it by more than `edge` x
+    its depth (a bilinear sample of the map is 1 only between four such pixels); 0 on the border."""
+    ok = torch.zeros_like(d, dtype=torch.bool)
+    c = d[1:-1, 1:-1]
+    inner = c > 0
+    for n in (d[1:-1, 2:], d[1:-1, :-2], d[2:, 1:-1], d[:-2, 1:-1]):
+        inner &= (n > 0) & ((n - c).abs() <= edge * c)
+    ok[1:-1, 1:-1] = inner
+    du, dv = _gradients(d)
+    zero = torch.zeros_like(d)
+    return torch.stack([torch.where(ok, d, zero), torch.where(ok, du, zero), torch.where(ok, dv, zero), ok.to(d.dtype)])
+
+
 def build_pyramid(rgb: np.ndarray, depth: np.ndarray, K: tuple[float, float, float, float],
                   levels: int) -> list[PhotoLevel]:
     """(H, W, 3) colour in [0, 1] and (H, W) depth in metres (0 = invalid) -> `levels` levels, finest first.
@@ -98,7 +119,7 @@ def build_pyramid(rgb: np.ndarray, depth: np.ndarray, K: tuple[float, float, flo
         if lvl:
             g, d = _half(g), _half_depth(d)
             fx, fy, cx, cy = fx / 2, fy / 2, (cx + 0.5) / 2 - 0.5, (cy + 0.5) / 2 - 0.5
-        out.append(PhotoLevel(g, *_gradients(g), d, (fx, fy, cx, cy)))
+        out.append(PhotoLevel(g, *_gradients(g), d, (fx, fy, cx, cy), depth_stack(d)))
     return out
 
 
@@ -144,6 +165,43 @@ def photometric_residuals(cur: PhotoLevel, X_k: Tensor, I_k: Tensor, T_ik: Tenso
     return torch.where(valid, r, torch.zeros_like(r)), J * valid[:, None], valid
 
 
+def depth_residuals(cur: PhotoLevel, X_k: Tensor, T_ik: Tensor, border: int = 1) -> tuple[Tensor, Tensor, Tensor]:
+    """Depth residuals r (N,) = D_i(pi(X_i)) - z_i in metres (the current frame's depth where the moved point lands,
+    bilinear, against the point's own depth), their Jacobians J (N, 6) w.r.t. a left twist (rho, omega) of T_ik, and
+    a validity mask (N,) (in front, inside the image, between four pixels with depth and no depth edge). With
+    G = grad D . dpi/dX - e_z (N, 3), dr/dxi = (G, X_i x G), as for `photometric_residuals`. Example: a wall at
+    z = 2 m facing the camera, a point at 1.99 m: r = +1 cm, dr/drho = (0, 0, -1)."""
+    H, W = cur.depth.shape
+    fx, fy, cx, cy = cur.K
+    X = X_k @ T_ik[:3, :3].T + T_ik[:3, 3]
+    x, y, z = X.unbind(-1)
+    zs = torch.where(z > 1e-6, z, torch.ones_like(z))
+    u, v = fx * x / zs + cx, fy * y / zs + cy
+    valid = (z > 1e-6) & (u >= border) & (u <= W - 1 - border) & (v >= border) & (v <= H - 1 - border)
+    stack = cur.depth_stack if cur.depth_stack is not None else depth_stack(cur.depth)
+    s = _sample(stack, u.clamp(0, W - 1), v.clamp(0, H - 1))
+    valid = valid & (s[3] > 1.0 - 1e-9)
+    r = s[0] - z
+    gu, gv = s[1] * fx / zs, s[2] * fy / zs
+    g = torch.stack([gu, gv, -(gu * x + gv * y) / zs - 1.0], dim=-1)
+    J = torch.cat([g, torch.linalg.cross(X, g)], dim=-1)
+    return torch.where(valid, r, torch.zeros_like(r)), J * valid[:, None], valid
+
+
+def depth_block(cur: PhotoLevel, X_k: Tensor, T_ik: Tensor, scale: float) -> tuple[Tensor, Tensor, int] | None:
+    """The depth residuals' normal equations (H (6, 6), b (6,)) and their count for `align_photometric`, each
+    residual weighted as
+    an intensity residual of the same standard score: Huber at 1.345 sigma_d, sigma_d = 1.4826 x the median |r| (a
+    robust standard deviation, this step's), times `scale` / sigma_d^2 (`scale`: depth_weight x the intensity
+    residuals' variance). None with fewer than 6 valid residuals."""
+    r, J, valid = depth_residuals(cur, X_k, T_ik)
+    if int(valid.sum()) < 6:
+        return None
+    sigma = max(1.4826 * float(r[valid].abs().median()), 1e-5)
+    w = huber_weights(r, valid, 1.345 * sigma) * (scale / sigma ** 2)
+    return (J * w[:, None]).T @ J, (J * w[:, None]).T @ r, int(valid.sum())
+
+
 def twist_small(D: Tensor) -> Tensor:
     """First-order twist (rho, omega) of a near-identity pose D (4, 4): rho = t, omega = vee((R - R^T) / 2); exact
     to first order in the angle (se3_exp(xi) -> xi + O(|xi|^2))."""
@@ -174,7 +232,9 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
     `others`, pairs (pyramid, T_ij) of more references j (older keyframes; T_ij: camera j -> current camera), add
     their residuals to the same steps: a left twist of T_ik is a left twist of the current camera's world -> camera
     pose, so every T_ij takes the same update (slam.photo.track_refs). `rms` and the point count stay the first
-    reference's.
+    reference's. With `cfg.depth_weight` > 0 every reference point also has a depth residual (`depth_residuals`,
+    `depth_block`), the current frame's depth where it lands against its own, as in dense RGB-D odometry (Kerl et
+    al. 2013), weighted by its robust scale so that 1 weighs it as an intensity residual.
 
     Args:
         ref, cur: pyramids of the reference keyframe (with depth) and the current frame (`build_pyramid`).
@@ -185,8 +245,9 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
     T = start.clone()
     light = torch.zeros(2, dtype=torch.float64)  # (alpha, beta): I_k is seen as (1 + alpha) I_k + beta
     n_par = 8 if getattr(cfg, "affine_light", False) else 6
+    depth_weight = float(getattr(cfg, "depth_weight", 0.0))
     more = [(pyr, T_j.detach().to(torch.float64).clone()) for pyr, T_j in (others or [])]
-    total, n_used, rms = 0, 0, float("nan")
+    total, n_used, rms, n_depth = 0, 0, float("nan"), None
     for lvl in reversed(range(len(ref))):
         X_k, I_k = reference_points(ref[lvl], cfg.grad_threshold, cfg.max_points, generator)
         X_more = [reference_points(pyr[lvl], cfg.grad_threshold, cfg.max_points, generator) for pyr, _ in more]
@@ -207,6 +268,14 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
                 w_j = huber_weights(r_j, valid_j, cfg.huber)
                 H[:6, :6] = H[:6, :6] + (J_j * w_j[:, None]).T @ J_j
                 b[:6] = b[:6] + (J_j * w_j[:, None]).T @ r_j
+            if depth_weight > 0:  # the same reference points' depth residuals (slam.photo.depth_weight)
+                for j, (X_j, T_j) in enumerate([(X_k, T), *((X_j, T_j) for (X_j, _), (_, T_j) in zip(X_more, more))]):
+                    blk = depth_block(cur[lvl], X_j, T_j, depth_weight * rms * rms)
+                    if j == 0:
+                        n_depth = 0 if blk is None else blk[2]
+                    if blk is not None:
+                        H[:6, :6] = H[:6, :6] + blk[0]
+                        b[:6] = b[:6] + blk[1]
             total += 1
             if prior is not None:
                 T_p, info, lam = prior
@@ -226,7 +295,8 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
                 light = light + step[6:]
             if float(xi.norm()) < cfg.tol:
                 break
-    return PhotoResult(T, total, n_used, rms, None, (float(light[0]), float(light[1])) if n_par == 8 else None)
+    return PhotoResult(T, total, n_used, rms, None, (float(light[0]), float(light[1])) if n_par == 8 else None,
+                       n_depth)
 
 
 def step_bound(recent: list[float], weak: bool, cfg) -> float:

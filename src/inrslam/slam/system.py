@@ -433,6 +433,8 @@ class SlamSystem:
             rec["photo_refs"] = 1 + len(others)  # keyframes aligned onto at once (slam.photo.track_refs)
         if res.light is not None:
             rec["photo_light"] = [round(res.light[0], 4), round(res.light[1], 4)]
+        if res.n_depth is not None:
+            rec["photo_depth_points"] = res.n_depth  # depth residuals beside the intensities (slam.photo.depth_weight)
         if fallback:
             rec["photo_fallback"] = fallback
             return pred, cur
