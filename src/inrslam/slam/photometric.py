@@ -16,6 +16,7 @@ Gauss-Newton with Huber weights solves (J^T W J) xi = -J^T W r, coarse to fine o
 halves the image), and stops on a small step. This is dense visual odometry (Steinbruecker et al. 2011, Kerl et al.
 2013). A textured wall constrains the sliding that leaves depth-only registration degenerate, and the depth only
 enters through the parallax, so noisy depth hurts it far less than it hurts registration (docs/accurate.md).
+Optionally (`depth_weight`) each point also has a depth residual, D_i(pi(X_i)) - z_i (`depth_residuals`).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ LUMA = (0.299, 0.587, 0.114)
 class PhotoLevel:
     """One pyramid level: grey image, its central-difference gradients and depth, all (H, W) float64; pinhole
     (fx, fy, cx, cy) in this level's pixels; for the depth residual (`depth_residuals`) the depth's stack (4, H, W)
-    of `depth_stack`."""
+    of `depth_stack`, made on first use."""
 
     gray: Tensor
     grad_u: Tensor
@@ -119,7 +120,7 @@ def build_pyramid(rgb: np.ndarray, depth: np.ndarray, K: tuple[float, float, flo
         if lvl:
             g, d = _half(g), _half_depth(d)
             fx, fy, cx, cy = fx / 2, fy / 2, (cx + 0.5) / 2 - 0.5, (cy + 0.5) / 2 - 0.5
-        out.append(PhotoLevel(g, *_gradients(g), d, (fx, fy, cx, cy), depth_stack(d)))
+        out.append(PhotoLevel(g, *_gradients(g), d, (fx, fy, cx, cy)))
     return out
 
 
@@ -178,8 +179,9 @@ def depth_residuals(cur: PhotoLevel, X_k: Tensor, T_ik: Tensor, border: int = 1)
     zs = torch.where(z > 1e-6, z, torch.ones_like(z))
     u, v = fx * x / zs + cx, fy * y / zs + cy
     valid = (z > 1e-6) & (u >= border) & (u <= W - 1 - border) & (v >= border) & (v <= H - 1 - border)
-    stack = cur.depth_stack if cur.depth_stack is not None else depth_stack(cur.depth)
-    s = _sample(stack, u.clamp(0, W - 1), v.clamp(0, H - 1))
+    if cur.depth_stack is None:
+        cur.depth_stack = depth_stack(cur.depth)
+    s = _sample(cur.depth_stack, u.clamp(0, W - 1), v.clamp(0, H - 1))
     valid = valid & (s[3] > 1.0 - 1e-9)
     r = s[0] - z
     gu, gv = s[1] * fx / zs, s[2] * fy / zs
@@ -190,10 +192,9 @@ def depth_residuals(cur: PhotoLevel, X_k: Tensor, T_ik: Tensor, border: int = 1)
 
 def depth_block(cur: PhotoLevel, X_k: Tensor, T_ik: Tensor, scale: float) -> tuple[Tensor, Tensor, int] | None:
     """The depth residuals' normal equations (H (6, 6), b (6,)) and their count for `align_photometric`, each
-    residual weighted as
-    an intensity residual of the same standard score: Huber at 1.345 sigma_d, sigma_d = 1.4826 x the median |r| (a
-    robust standard deviation, this step's), times `scale` / sigma_d^2 (`scale`: depth_weight x the intensity
-    residuals' variance). None with fewer than 6 valid residuals."""
+    residual weighted as an intensity residual of the same standard score: Huber at 1.345 sigma_d, sigma_d = 1.4826
+    x the median |r| (a robust standard deviation, this step's), times `scale` / sigma_d^2 (`scale`: depth_weight x
+    the intensity residuals' variance). None with fewer than 6 valid residuals."""
     r, J, valid = depth_residuals(cur, X_k, T_ik)
     if int(valid.sum()) < 6:
         return None
