@@ -302,7 +302,7 @@ def test_the_depth_residual_corrects_colour_taken_from_a_shifted_camera():
     c2w_b = C2W_A @ motion(xi_true)
     rgb_a, depth_a = wall_view(C2W_A)
     _, depth_b = wall_view(c2w_b)
-    rgb_b, _ = wall_view(c2w_b @ motion([0.0, 0.0, 0.01, 0.0, 0.0, 0.0]))  # colour from 1 cm nearer (camera z faces the wall)
+    rgb_b, _ = wall_view(c2w_b @ motion([0.0, 0.0, 0.01, 0.0, 0.0, 0.0]))  # colour 1 cm nearer the wall
     ref, cur = build_pyramid(rgb_a, depth_a, K, 3), build_pyramid(rgb_b, depth_b, K, 3)
 
     def error_mm(depth_weight):
