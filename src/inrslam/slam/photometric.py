@@ -146,23 +146,39 @@ def reference_points(level: PhotoLevel, grad_threshold: float, max_points: int,
     return X, level.gray[v, u]
 
 
-def photometric_residuals(cur: PhotoLevel, X_k: Tensor, I_k: Tensor, T_ik: Tensor,
-                          border: int = 1) -> tuple[Tensor, Tensor, Tensor]:
-    """Residuals r (N,), Jacobians J (N, 6) w.r.t. a left twist (rho, omega) of T_ik, and a validity mask (N,)
-    (in front of the camera, projecting inside the image less `border` pixels); see the module docstring."""
-    H, W = cur.gray.shape
+def _moved(cur: PhotoLevel, X_k: Tensor, T_ik: Tensor, border: int, stack: Tensor
+           ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Points X_k (N, 3) moved by T_ik into the current camera: X (N, 3), their depth zs (N,) (1 where not in front),
+    the bilinear samples (C, N) of a (C, H, W) `stack` of the current level where they project, and a validity mask
+    (N,): in front of the camera and inside the image less `border` pixels."""
+    H, W = stack.shape[-2:]
     fx, fy, cx, cy = cur.K
     X = X_k @ T_ik[:3, :3].T + T_ik[:3, 3]
     x, y, z = X.unbind(-1)
     zs = torch.where(z > 1e-6, z, torch.ones_like(z))
     u, v = fx * x / zs + cx, fy * y / zs + cy
     valid = (z > 1e-6) & (u >= border) & (u <= W - 1 - border) & (v >= border) & (v <= H - 1 - border)
-    s = _sample(torch.stack([cur.gray, cur.grad_u, cur.grad_v]), u.clamp(0, W - 1), v.clamp(0, H - 1))
+    return X, zs, _sample(stack, u.clamp(0, W - 1), v.clamp(0, H - 1)), valid
+
+
+def _jacobian(cur: PhotoLevel, X: Tensor, zs: Tensor, grad_u: Tensor, grad_v: Tensor, dz: float) -> Tensor:
+    """J (N, 6) of a residual f(pi(X)) - dz * z under a left twist of the pose: with the sampled image gradient
+    (grad_u, grad_v) (N,), g = grad f . dpi/dX - dz e_z (N, 3) and J = g [I | -[X]_x] = (g, X x g)."""
+    fx, fy = cur.K[0], cur.K[1]
+    x, y, _ = X.unbind(-1)
+    gu, gv = grad_u * fx / zs, grad_v * fy / zs
+    gz = -(gu * x + gv * y) / zs
+    g = torch.stack([gu, gv, gz - dz if dz else gz], dim=-1)
+    return torch.cat([g, torch.linalg.cross(X, g)], dim=-1)
+
+
+def photometric_residuals(cur: PhotoLevel, X_k: Tensor, I_k: Tensor, T_ik: Tensor,
+                          border: int = 1) -> tuple[Tensor, Tensor, Tensor]:
+    """Residuals r (N,), Jacobians J (N, 6) w.r.t. a left twist (rho, omega) of T_ik, and a validity mask (N,)
+    (in front of the camera, projecting inside the image less `border` pixels); see the module docstring."""
+    X, zs, s, valid = _moved(cur, X_k, T_ik, border, torch.stack([cur.gray, cur.grad_u, cur.grad_v]))
     r = s[0] - I_k
-    # g = grad I . dpi/dX (N, 3); then g [I | -[X]_x] = (g, X x g)
-    gu, gv = s[1] * fx / zs, s[2] * fy / zs
-    g = torch.stack([gu, gv, -(gu * x + gv * y) / zs], dim=-1)
-    J = torch.cat([g, torch.linalg.cross(X, g)], dim=-1)
+    J = _jacobian(cur, X, zs, s[1], s[2], 0.0)
     return torch.where(valid, r, torch.zeros_like(r)), J * valid[:, None], valid
 
 
@@ -172,21 +188,12 @@ def depth_residuals(cur: PhotoLevel, X_k: Tensor, T_ik: Tensor, border: int = 1)
     a validity mask (N,) (in front, inside the image, between four pixels with depth and no depth edge). With
     G = grad D . dpi/dX - e_z (N, 3), dr/dxi = (G, X_i x G), as for `photometric_residuals`. Example: a wall at
     z = 2 m facing the camera, a point at 1.99 m: r = +1 cm, dr/drho = (0, 0, -1)."""
-    H, W = cur.depth.shape
-    fx, fy, cx, cy = cur.K
-    X = X_k @ T_ik[:3, :3].T + T_ik[:3, 3]
-    x, y, z = X.unbind(-1)
-    zs = torch.where(z > 1e-6, z, torch.ones_like(z))
-    u, v = fx * x / zs + cx, fy * y / zs + cy
-    valid = (z > 1e-6) & (u >= border) & (u <= W - 1 - border) & (v >= border) & (v <= H - 1 - border)
     if cur.depth_stack is None:
         cur.depth_stack = depth_stack(cur.depth)
-    s = _sample(cur.depth_stack, u.clamp(0, W - 1), v.clamp(0, H - 1))
+    X, zs, s, valid = _moved(cur, X_k, T_ik, border, cur.depth_stack)
     valid = valid & (s[3] > 1.0 - 1e-9)
-    r = s[0] - z
-    gu, gv = s[1] * fx / zs, s[2] * fy / zs
-    g = torch.stack([gu, gv, -(gu * x + gv * y) / zs - 1.0], dim=-1)
-    J = torch.cat([g, torch.linalg.cross(X, g)], dim=-1)
+    r = s[0] - X[:, 2]
+    J = _jacobian(cur, X, zs, s[1], s[2], 1.0)
     return torch.where(valid, r, torch.zeros_like(r)), J * valid[:, None], valid
 
 
