@@ -168,7 +168,7 @@ def _jacobian(cur: PhotoLevel, X: Tensor, zs: Tensor, grad_u: Tensor, grad_v: Te
     x, y, _ = X.unbind(-1)
     gu, gv = grad_u * fx / zs, grad_v * fy / zs
     gz = -(gu * x + gv * y) / zs
-    g = torch.stack([gu, gv, gz - dz if dz else gz], dim=-1)
+    g = torch.stack([gu, gv, gz - dz], dim=-1)  # (x - 0.0 is x bit for bit: the intensity residual's J unchanged)
     return torch.cat([g, torch.linalg.cross(X, g)], dim=-1)
 
 
@@ -203,11 +203,12 @@ def depth_block(cur: PhotoLevel, X_k: Tensor, T_ik: Tensor, scale: float) -> tup
     x the median |r| (a robust standard deviation, this step's), times `scale` / sigma_d^2 (`scale`: depth_weight x
     the intensity residuals' variance). None with fewer than 6 valid residuals."""
     r, J, valid = depth_residuals(cur, X_k, T_ik)
-    if int(valid.sum()) < 6:
+    n = int(valid.sum())
+    if n < 6:
         return None
     sigma = max(1.4826 * float(r[valid].abs().median()), 1e-5)
     w = huber_weights(r, valid, 1.345 * sigma) * (scale / sigma ** 2)
-    return (J * w[:, None]).T @ J, (J * w[:, None]).T @ r, int(valid.sum())
+    return (J * w[:, None]).T @ J, (J * w[:, None]).T @ r, n
 
 
 def twist_small(D: Tensor) -> Tensor:
@@ -277,10 +278,10 @@ def align_photometric(ref: list[PhotoLevel], cur: list[PhotoLevel], T_ik: Tensor
                 H[:6, :6] = H[:6, :6] + (J_j * w_j[:, None]).T @ J_j
                 b[:6] = b[:6] + (J_j * w_j[:, None]).T @ r_j
             if depth_weight > 0:  # the same reference points' depth residuals (slam.photo.depth_weight)
-                for j, (X_j, T_j) in enumerate([(X_k, T), *((X_j, T_j) for (X_j, _), (_, T_j) in zip(X_more, more))]):
-                    blk = depth_block(cur[lvl], X_j, T_j, depth_weight * rms * rms)
-                    if j == 0:
-                        n_depth = 0 if blk is None else blk[2]
+                pairs = [(X_k, T), *((X_j, T_j) for (X_j, _), (_, T_j) in zip(X_more, more))]
+                blocks = [depth_block(cur[lvl], X_j, T_j, depth_weight * rms * rms) for X_j, T_j in pairs]
+                n_depth = 0 if blocks[0] is None else blocks[0][2]
+                for blk in blocks:
                     if blk is not None:
                         H[:6, :6] = H[:6, :6] + blk[0]
                         b[:6] = b[:6] + blk[1]
