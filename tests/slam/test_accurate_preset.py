@@ -196,6 +196,45 @@ def test_interrupted_noisy_accurate_run_resumes_to_the_uninterrupted_result(nois
     assert (out / "trajectory.txt").read_text() == (noisy / "trajectory.txt").read_text()
 
 
+REFINE = ["slam.refine.enabled=true", "slam.refine.gaps=[1,2]"]
+
+
+@pytest.fixture(scope="module")
+def refined(tmp_path_factory):
+    return run(tmp_path_factory, "refined", "accurate", NOISY + REFINE)
+
+
+def test_a_final_pose_graph_moves_the_trajectory_after_the_last_frame_only_when_asked(noisy, refined):
+    recs = [json.loads(line) for line in (refined / "log.jsonl").read_text().splitlines()]
+    ref = [r for r in recs if r["type"] == "refine"]
+    assert len(ref) == 1 and ref[0]["frame"] == 4  # once, after the last frame
+    assert ref[0]["links"] + ref[0]["links_dropped"] == 4 + 3  # frames 1-4 aligned onto 1 back, 2-4 onto 2 back
+    assert ref[0]["links"] >= 4 and 0 < ref[0]["moved_max_m"] < 0.01
+    assert '"refine"' not in (noisy / "log.jsonl").read_text()
+
+    def tracking(r):  # a record without its timings
+        return {k: v for k, v in r.items() if not k.endswith("_ms")}
+
+    # every frame was tracked as without the key; only the written trajectory moved
+    assert [tracking(r) for r in tracks(refined)] == [tracking(r) for r in tracks(noisy)]
+    _, est = read_tum(refined / "trajectory.txt")
+    _, est0 = read_tum(noisy / "trajectory.txt")
+    assert np.allclose(est[0], est0[0], atol=1e-6) and not np.allclose(est, est0, atol=1e-6)
+
+
+def test_an_interrupted_refined_run_resumes_to_the_uninterrupted_result(refined, tmp_path):
+    out = tmp_path / "interrupted"
+
+    def stop_after_frame_4(i, n, info):
+        if i == 4:
+            raise KeyboardInterrupt  # after the graph: the resumed run tracks frame 4 and builds it again
+
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(load_config(preset="accurate", overrides=SMALL + NOISY + REFINE), out, progress=stop_after_frame_4)
+    resume_slam(out)
+    assert (out / "trajectory.txt").read_text() == (refined / "trajectory.txt").read_text()
+
+
 def test_a_photometric_refinement_moving_a_gicp_pose_too_far_is_rejected(tmp_path_factory):
     # every view counts as well conditioned (weak_degeneracy 0), so the 1 nm bound applies to every frame
     out = run(tmp_path_factory, "photo_jump", "accurate", NOISY + ["slam.photo.max_step=1e-9",

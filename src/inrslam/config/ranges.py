@@ -95,6 +95,9 @@ RANGES: dict[str, Rule] = {
     "slam.loop.odom_sigma_t": POS, "slam.loop.odom_sigma_r": POS,
     "slam.loop.loop_sigma_t": POS, "slam.loop.loop_sigma_r": POS, "slam.loop.huber": NONNEG,
     "slam.loop.refit_iters": NONNEG, "slam.loop.refit_pixels": COUNT,
+    "slam.refine.gaps": COUNT, "slam.refine.sigma_t": POS, "slam.refine.sigma_r": POS,
+    "slam.refine.odom_sigma_t": POS, "slam.refine.odom_sigma_r": POS, "slam.refine.huber": NONNEG,
+    "slam.refine.max_shift": POS,
     # outputs, evaluation
     "mesh.resolution": at_least(0.001), "mesh.chunk": COUNT,
     "eval.max_time_diff": NONNEG, "eval.rpe_delta": COUNT, "eval.cull_every": COUNT, "eval.cull_eps": NONNEG,

@@ -171,6 +171,24 @@ class LoopConfig:
 
 
 @dataclass
+class RefineConfig:
+    """A pose graph of every frame after the last one (`slam.refine.*`, on with `slam.refine.enabled`;
+    `inrslam.slam.trajectory_graph`, docs/accurate.md "A pose graph over photometric links"): each frame is aligned
+    photometrically (slam.photo's settings) onto the frames `gaps` before it, from their tracked relative pose; those
+    links and the tracked relative poses of consecutive frames are optimised together (GTSAM, frame 0 fixed) and
+    replace the trajectory. The map is not re-fitted to the new poses."""
+
+    enabled: bool = False  # refine the whole trajectory once, after the last frame
+    gaps: list[int] = field(default_factory=lambda: [8, 16])  # each frame is linked to the frames this many before it
+    sigma_t: float = 0.005  # std of a photometric link, metres ...
+    sigma_r: float = 0.005  # ... and radians
+    odom_sigma_t: float = 0.002  # std of the tracked relative pose of consecutive frames, metres ...
+    odom_sigma_r: float = 0.002  # ... and radians
+    huber: float = 2.0  # Huber threshold of the links, in standard deviations (0 = no robust kernel)
+    max_shift: float = 0.03  # metres; a link whose alignment moved the tracked relative pose further is left out
+
+
+@dataclass
 class SlamConfig:
     """Tracking, mapping and keyframe settings."""
 
@@ -210,6 +228,7 @@ class SlamConfig:
     max_pose_jump: float = 0.5  # metres; a tracked pose moving more than this from the prediction is rejected
     loop_closure: bool = False  # detect revisits, optimise the keyframe pose graph, re-fit the map (slam.loop)
     loop: LoopConfig = field(default_factory=LoopConfig)  # settings of loop closure
+    refine: RefineConfig = field(default_factory=RefineConfig)  # a final pose graph of every frame (off)
     poses: str = ""  # mapping only, with given poses: "gt" (the dataset's) or a TUM file; "" = track (SLAM)
     poses_tolerance: float = 0.02  # seconds; each frame takes the pose file's pose nearest in time, at most this far
     poses_anchor: bool = True  # move a pose file's trajectory so frame 0 sits at the dataset's frame-0 pose

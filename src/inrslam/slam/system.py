@@ -38,7 +38,7 @@ from inrslam.slam.loop_closure import (
 from inrslam.slam.mapping import initialise, map_frame, refit
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import ModelConfig, SceneModel
-from inrslam.slam.photometric import PhotoLevel, align_photometric, build_pyramid, grey, jump_kept, step_bound
+from inrslam.slam.photometric import PhotoLevel, align_photometric, grey, jump_kept, step_bound
 from inrslam.slam.poses import constant_velocity, relative_trajectory
 from inrslam.slam.registration import (
     PreparedCloud,
@@ -52,6 +52,7 @@ from inrslam.slam.registration import (
 from inrslam.slam.sdf_tracking import align_to_sdf
 from inrslam.slam.state import SlamState
 from inrslam.slam.tracking import TrackResult, track_frame
+from inrslam.slam.trajectory_graph import frame_pyramid, photometric_links, refine_trajectory
 
 Rays = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # dirs_cam (R, 3), rgb (R, 3), depth (R,) metres
 MIN_IMAGE_SIZE = 16  # pixels per side (held-out SSIM uses an 11-px window; tracking keeps a border)
@@ -280,6 +281,8 @@ class SlamSystem:
             self._map(i, ft)
         if cfg.loop_closure and i == self.n_frames - 1 and self.state.loops:
             self._finish_loops(i)
+        if cfg.refine.enabled and i == self.n_frames - 1:
+            self._refine_trajectory(i)
 
     def _map_frame(self, frame: Frame, smooth: np.ndarray) -> Frame:
         """The frame the map learns from: `frame`, or with `smooth`, its depth after slam.gicp's filter
@@ -388,11 +391,8 @@ class SlamSystem:
         return torch.as_tensor(c2w, dtype=pred.dtype, device=pred.device)
 
     def _pyramid(self, frame: Frame, smooth: np.ndarray | None = None) -> list[PhotoLevel]:
-        """Photometric pyramid of a frame: its colour and its depth after the GICP stage's filter (slam.gicp), given
-        as `smooth` when already computed."""
-        intr = frame.intrinsics
-        depth = filtered_depth(frame.depth, self.cfg.slam.gicp) if smooth is None else smooth
-        return build_pyramid(frame.rgb, depth, (intr.fx, intr.fy, intr.cx, intr.cy), self.cfg.slam.photo.levels)
+        """Photometric pyramid of a frame (`trajectory_graph.frame_pyramid`)."""
+        return frame_pyramid(frame, self.cfg.slam, smooth)
 
     def _photo_refine(self, i: int, frame: Frame, pred: torch.Tensor, smooth: np.ndarray,
                       rec: dict) -> tuple[torch.Tensor, list[PhotoLevel]]:
@@ -647,6 +647,21 @@ class SlamSystem:
             rec.update(self._refit())
         s.loop_stats["ms"] = s.loop_stats.get("ms", 0.0) + (time.perf_counter() - t0) * 1e3
         self._log(rec)
+
+    def _refine_trajectory(self, i: int) -> None:
+        """After the last frame i: the pose graph of every frame (slam.refine, `trajectory_graph`) replaces frames
+        0..i's poses; logs the links used and left out and how far the poses moved."""
+        rc, s = self.cfg.slam.refine, self.state
+        t0 = time.perf_counter()
+        est = s.est[: i + 1].double().cpu().numpy()
+        links, dropped = photometric_links(lambda k: self._pyramid(self.dataset[k]), est, rc.gaps,
+                                           self.cfg.slam.photo, rc.max_shift, self.cfg.seed)
+        new = refine_trajectory(est, links, rc)
+        s.est[: i + 1] = torch.as_tensor(new, dtype=s.est.dtype, device=s.est.device)
+        moved = np.linalg.norm(new[:, :3, 3] - est[:, :3, 3], axis=1)
+        self._log({"type": "refine", "frame": i, "links": len(links), "links_dropped": dropped,
+                   "moved_max_m": round(float(moved.max()), 5), "moved_median_m": round(float(np.median(moved)), 5),
+                   "refine_ms": (time.perf_counter() - t0) * 1e3})
 
     def _close_loop(self, i: int, frame: Frame) -> None:
         """Loop closure at the new keyframe i (slam.loop, docs/loop_closure.md): older keyframes near its estimated
