@@ -173,10 +173,11 @@ class LoopConfig:
 @dataclass
 class RefineConfig:
     """A pose graph of every frame after the last one (`slam.refine.*`, on with `slam.refine.enabled`;
-    `inrslam.slam.trajectory_graph`, docs/accurate.md "A pose graph over photometric links"): each frame is aligned
-    photometrically (slam.photo's settings) onto the frames `gaps` before it, from their tracked relative pose; those
-    links and the tracked relative poses of consecutive frames are optimised together (GTSAM, frame 0 fixed) and
-    replace the trajectory. The map is not re-fitted to the new poses."""
+    `inrslam.slam.trajectory_graph`, docs/accurate.md "A final pose graph over photometric links"): each frame is
+    aligned photometrically (slam.photo's settings) onto the frames `gaps` before it, from their tracked relative pose;
+    those links and the tracked relative poses of consecutive frames are optimised together (GTSAM, frame 0 fixed) and
+    replace the trajectory. The map is not re-fitted to the new poses; runs with given poses (slam.poses) track
+    nothing and are not refined."""
 
     enabled: bool = False  # refine the whole trajectory once, after the last frame
     gaps: list[int] = field(default_factory=lambda: [8, 16])  # each frame is linked to the frames this many before it
