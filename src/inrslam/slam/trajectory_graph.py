@@ -15,7 +15,7 @@ import torch
 from inrslam.data.frame import Frame
 from inrslam.slam.config import RefineConfig, SlamConfig
 from inrslam.slam.photometric import PhotoLevel, align_photometric, build_pyramid
-from inrslam.slam.pose_graph import Edge, optimise, relative
+from inrslam.slam.pose_graph import Edge, odometry_edges, optimise, relative
 from inrslam.slam.registration import filtered_depth
 
 
@@ -71,7 +71,6 @@ def refine_trajectory(poses: np.ndarray, links: list[tuple[int, int, np.ndarray]
     poses = np.asarray(poses, dtype=np.float64)
     if not links:
         return poses.copy()
-    edges = [Edge(k, k + 1, relative(poses[k], poses[k + 1]), cfg.odom_sigma_t, cfg.odom_sigma_r)
-             for k in range(len(poses) - 1)]
+    edges = odometry_edges(poses, cfg.odom_sigma_t, cfg.odom_sigma_r)
     edges += [Edge(i, j, T, cfg.sigma_t, cfg.sigma_r, cfg.huber) for i, j, T in links]
     return optimise(poses, edges)
