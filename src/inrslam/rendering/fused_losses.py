@@ -24,6 +24,8 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
+from inrslam.fields.kernels.subnormal import flushed, tiny_of
+
 # indices of the per-ray partial sums
 _COL, _DEP, _FS, _FS_N, _CE, _CE_N, _TA, _TA_N = range(8)
 TERMS = ("color", "depth", "free_space", "center", "tail")
@@ -107,9 +109,10 @@ def _scales(parts: np.ndarray, n_valid: int, per_ray: bool) -> tuple[np.ndarray,
 
 @njit(parallel=True, cache=True)
 def _backward(w, c, z, s, C, D, behind, thr_front, thr_center, T, fs_target, sdf_terms, comp, g_col, g_dep,
-              g_sdf, need_w, need_c, need_s, gw, gc, gs):  # pragma: no cover - numba
+              g_sdf, need_w, need_c, need_s, tiny, gw, gc, gs):  # pragma: no cover - numba
     """Gradients to w (R, S), c (R, S, 3) and s (R, S): g_col (scalar: ∂L/∂colour / (3R)), g_dep (R,) ∂L/∂D̂ per
-    ray / 2, g_sdf (3, R) each SDF term's ∂L/∂term times the ray's divisor scale."""
+    ray / 2, g_sdf (3, R) each SDF term's ∂L/∂term times the ray's divisor scale. Subnormal gradients (|v| < tiny:
+    behind the surface, where w is) are written as zero (``fields.kernels.subnormal``)."""
     R, S = w.shape
     for r in prange(R):
         e0 = 2.0 * g_col * (comp[r, 0] - C[r, 0])
@@ -118,12 +121,12 @@ def _backward(w, c, z, s, C, D, behind, thr_front, thr_center, T, fs_target, sdf
         ed = 2.0 * g_dep[r] * (comp[r, 3] - D[r])
         for i in range(S):
             if need_w:
-                gw[r, i] = e0 * c[r, i, 0] + e1 * c[r, i, 1] + e2 * c[r, i, 2] + ed * z[r, i]
+                gw[r, i] = flushed(e0 * c[r, i, 0] + e1 * c[r, i, 1] + e2 * c[r, i, 2] + ed * z[r, i], tiny)
             if need_c:
                 wi = w[r, i]
-                gc[r, i, 0] = e0 * wi
-                gc[r, i, 1] = e1 * wi
-                gc[r, i, 2] = e2 * wi
+                gc[r, i, 0] = flushed(e0 * wi, tiny)
+                gc[r, i, 1] = flushed(e1 * wi, tiny)
+                gc[r, i, 2] = flushed(e2 * wi, tiny)
         if need_s:
             d = D[r]
             valid = d > 0
@@ -138,7 +141,7 @@ def _backward(w, c, z, s, C, D, behind, thr_front, thr_center, T, fs_target, sdf
                         g = 2.0 * g_sdf[1, r] * (z[r, i] + s[r, i] * T - d) * T
                     elif tail:
                         g = 2.0 * g_sdf[2, r] * (z[r, i] + s[r, i] * T - d) * T
-                gs[r, i] = g
+                gs[r, i] = flushed(g, tiny)
 
 
 class CompositeLossFn(torch.autograd.Function):
@@ -180,7 +183,7 @@ class CompositeLossFn(torch.autograd.Function):
         gs = np.empty((R, S) if need_s else (0, 0), dtype=dt)
         f, ce, T, fs = ctx.consts
         _backward(w.numpy(), c.numpy(), z.numpy(), s.numpy(), C.numpy(), Dn, behind.numpy(), f, ce, T, fs,
-                  ctx.sdf_terms, ctx.comp, g_col, g_dep, g_sdf, need_w, need_c, need_s, gw, gc, gs)
+                  ctx.sdf_terms, ctx.comp, g_col, g_dep, g_sdf, need_w, need_c, need_s, tiny_of(dt), gw, gc, gs)
         return (torch.from_numpy(gw) if need_w else None, torch.from_numpy(gc) if need_c else None, None,
                 torch.from_numpy(gs) if need_s else None, *([None] * 8))
 

@@ -19,6 +19,7 @@ import torch
 from numba import njit, prange
 
 from inrslam.fields.kernels.function import cpu_floats, resolve_kernel
+from inrslam.fields.kernels.subnormal import flush_inplace, tiny_of
 
 #: Samples per block of the parallel loops at most (`block_rows`: fixed by the layer shapes, so that the weight
 #: gradients sum in the same order on any number of threads).
@@ -80,20 +81,24 @@ def _forward(x, w1t, w2, block, out):  # pragma: no cover - numba
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def _backward(x, w1t, w2, gy, block, need_x, need_w, gx, gw1t_parts, gw2_parts):  # pragma: no cover - numba
+def _backward(x, w1t, w2, gy, block, need_x, need_w, tiny, gx, gw1t_parts, gw2_parts):  # pragma: no cover - numba
     """Gradients of out = relu(x w1t) w2^T for the output gradient gy (N, O): gx (N, I) when need_x, and per-block
-    weight gradients gw1t_parts (B, I, H), gw2_parts (B, O, H) when need_w (summed over blocks by the caller)."""
+    weight gradients gw1t_parts (B, I, H), gw2_parts (B, O, H) when need_w (summed over blocks by the caller).
+    Subnormal values of gy (|v| < tiny) count as zero, and those of gx are set to zero (``subnormal``)."""
     n_pts = x.shape[0]
     for b in prange((n_pts + block - 1) // block):
         n0 = b * block
         n1 = min(n_pts, n0 + block)
         xb = x[n0:n1]
-        gyb = gy[n0:n1]
+        gyb = gy[n0:n1].copy()
+        flush_inplace(gyb, tiny)
         h = np.dot(xb, w1t)  # (m, H) pre-activation
         gh = np.dot(gyb, w2)  # (m, H) gradient of the activation
         relu_mask_inplace(h, gh)  # h: the activation, gh: the pre-activation's gradient
         if need_x:
-            gx[n0:n1] = np.dot(gh, w1t.T)
+            gxb = np.dot(gh, w1t.T)
+            flush_inplace(gxb, tiny)
+            gx[n0:n1] = gxb
         if need_w:
             gw1t_parts[b] = np.dot(xb.T, gh)
             gw2_parts[b] = np.dot(gyb.T, h)
@@ -112,7 +117,8 @@ def mlp2_torch(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Ten
 
 class Mlp2Fn(torch.autograd.Function):
     """Fused ``relu(x W1^T) W2^T`` on CPU tensors: forward and one backward (to x and to both weights, each only
-    when needed). Once differentiable: a second-order backward (``create_graph``) must use ``mlp2_torch``."""
+    when needed; subnormal output and input gradients count as zero). Once differentiable: a second-order backward
+    (``create_graph``) must use ``mlp2_torch``."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
@@ -139,7 +145,7 @@ class Mlp2Fn(torch.autograd.Function):
         gw1t = np.zeros((n_blocks, n_in, n_hid), dtype=dtype)
         gw2 = np.zeros((n_blocks, n_out, n_hid), dtype=dtype)
         _backward(xc.numpy(), w1t.numpy(), w2c.numpy(), gy.detach().to(w1t.dtype).contiguous().numpy(), block,
-                  need_x, need_w, gx, gw1t, gw2)
+                  need_x, need_w, tiny_of(dtype), gx, gw1t, gw2)
         gx_t = torch.from_numpy(gx) if need_x else None
         gw1_t = torch.from_numpy(gw1t.sum(axis=0)).t().contiguous() if need_w1 else None  # blocks summed in
         gw2_t = torch.from_numpy(gw2.sum(axis=0)) if need_w2 else None  # a fixed order: any thread count

@@ -25,6 +25,7 @@ from inrslam.fields.kernels.mlp import (
     relu_mask_inplace,
     resolve_backend,
 )
+from inrslam.fields.kernels.subnormal import flush_inplace, tiny_of
 
 
 @njit(inline="always", cache=True, fastmath=FASTMATH)
@@ -72,11 +73,12 @@ def _forward(x, w1t, b1, w2t, b2, w3t, b3, block, out):  # pragma: no cover - nu
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def _backward(x, w1t, b1, w2t, b2, w3t, gy, block, need_x, need_w, gx, gw1t_p, gb1_p, gw2t_p, gb2_p, gw3t_p,
+def _backward(x, w1t, b1, w2t, b2, w3t, gy, block, need_x, need_w, tiny, gx, gw1t_p, gb1_p, gw2t_p, gb2_p, gw3t_p,
               gb3_p):  # pragma: no cover - numba
     """Gradients for the output gradient gy (N, O): gx (N, I) when need_x, and per-block partial weight and bias
     gradients (gw1t_p (B, I, H1), gb1_p (B, H1), ... gb3_p (B, O)) when need_w (summed over blocks by the caller).
-    A ReLU passes its gradient where its pre-activation is > 0, or NaN (as torch's)."""
+    A ReLU passes its gradient where its pre-activation is > 0, or NaN (as torch's). Subnormal values of gy
+    (|v| < tiny) count as zero, and those of gx are set to zero (``subnormal``)."""
     n_pts = x.shape[0]
     w3 = np.ascontiguousarray(w3t.T)  # (O, H2)
     w2 = np.ascontiguousarray(w2t.T)  # (H2, H1)
@@ -85,14 +87,17 @@ def _backward(x, w1t, b1, w2t, b2, w3t, gy, block, need_x, need_w, gx, gw1t_p, g
         n0 = b * block
         n1 = min(n_pts, n0 + block)
         xb = x[n0:n1]
-        gyb = gy[n0:n1]
+        gyb = gy[n0:n1].copy()
+        flush_inplace(gyb, tiny)
         a1, a2 = _hidden(xb, w1t, b1, w2t, b2)
         g2 = np.dot(gyb, w3)  # (m, H2): gradient of a2
         relu_mask_inplace(a2, g2)  # -> the pre-activation's gradient (a2 is already 0 there)
         g1 = np.dot(g2, w2)  # (m, H1): gradient of a1
         relu_mask_inplace(a1, g1)
         if need_x:
-            gx[n0:n1] = np.dot(g1, w1)
+            gxb = np.dot(g1, w1)
+            flush_inplace(gxb, tiny)
+            gx[n0:n1] = gxb
         if need_w:
             gw3t_p[b] = np.dot(a2.T, gyb)
             _col_sum(gyb, gb3_p[b])
@@ -113,7 +118,8 @@ def mlp3_torch(x: torch.Tensor, w1: torch.Tensor, b1: torch.Tensor, w2: torch.Te
 
 class Mlp3Fn(torch.autograd.Function):
     """Fused three-layer MLP with biases on CPU tensors: forward and one backward (to x and to the weights and
-    biases, each only when needed). Once differentiable: a second-order backward must use ``mlp3_torch``."""
+    biases, each only when needed; subnormal output and input gradients count as zero). Once differentiable: a
+    second-order backward must use ``mlp3_torch``."""
 
     @staticmethod
     def forward(ctx, x, w1, b1, w2, b2, w3, b3):
@@ -141,7 +147,7 @@ class Mlp3Fn(torch.autograd.Function):
         parts = [np.zeros(s, dtype=dtype) for s in ((nb, n_in, h1), (nb, h1), (nb, h1, h2), (nb, h2), (nb, h2, n_out),
                                                        (nb, n_out))]
         _backward(xc.numpy(), w1t.numpy(), b1.numpy(), w2t.numpy(), b2.numpy(), w3t.numpy(),
-                  gy.detach().to(w1t.dtype).contiguous().numpy(), block, need_x, need_w, gx, *parts)
+                  gy.detach().to(w1t.dtype).contiguous().numpy(), block, need_x, need_w, tiny_of(dtype), gx, *parts)
         # blocks summed in a fixed order (any thread count); transposed weights back to (out, in)
         sums = [torch.from_numpy(p.sum(axis=0)) for p in parts] if need_w else [None] * 6
         grads = [torch.from_numpy(gx) if need_x else None]
