@@ -7,7 +7,15 @@ import torch
 
 from inrslam.fields import kernels
 from inrslam.fields.config import FieldConfig
-from inrslam.fields.kernels.mlp import BLAS_SINGLE_THREAD_MNK, BLOCK, Mlp2Fn, block_rows, mlp2, mlp2_torch
+from inrslam.fields.kernels.mlp import (
+    BLAS_SINGLE_THREAD_MNK,
+    BLOCK,
+    Mlp2Fn,
+    block_rows,
+    mlp2,
+    mlp2_pair,
+    mlp2_torch,
+)
 from inrslam.fields.kernels.threads import thread_scope
 from inrslam.fields.models import build_field
 
@@ -157,15 +165,89 @@ def test_field_decoder_kernel_switch(encoding):
         torch.manual_seed(0)
         field = build_field(FieldConfig(encoding=encoding, decoder_kernel=kernel, log2_hashmap_size=12), bounds)
         out = field(pts)
-        node = out.sdf.grad_fn.next_functions[0][0]
-        if node.name() == "TanhBackward0":  # plane decoders (three layers with biases): tanh on the SDF output
-            assert (node.next_functions[0][0].name() == "Mlp3FnBackward") == (kernel == "numba")
-        else:
-            assert (node.name() == "Mlp2FnBackward") == (kernel == "numba")
-        (out.sdf.sum() + out.rgb_logits.sum()).backward()
-        results[kernel] = (out.sdf.detach(), out.rgb_logits.detach(), field.sdf_net[0].weight.grad.clone())
+        fused = {"Mlp2FnBackward", "Mlp3FnBackward"} & _graph_nodes(out.sdf.grad_fn)
+        assert bool(fused) == (kernel == "numba")
+        p = pts.clone().requires_grad_()
+        out2 = field(p)
+        (out2.sdf.sum() + out2.rgb_logits.sum()).backward()
+        results[kernel] = (out.sdf.detach(), out.rgb_logits.detach(), field.sdf_net[0].weight.grad.clone(),
+                           field.rgb_net[0].weight.grad.clone(), field.rgb_net[-1].weight.grad.clone(), p.grad)
     for a, b in zip(results["torch"], results["numba"]):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
+def _graph_nodes(fn, depth: int = 6) -> set[str]:
+    """Names of the autograd nodes within `depth` steps of `fn`."""
+    names, frontier = set(), [fn]
+    for _ in range(depth):
+        nxt = []
+        for node in frontier:
+            if node is not None:
+                names.add(node.name())
+                nxt += [n for n, _ in node.next_functions]
+        frontier = nxt
+    return names
+
+
+def _pair_inputs(n, n_in=7, ha=32, hb=32, oa=1, ob=3, dtype=torch.float32):
+    g = torch.Generator().manual_seed(int(np.random.SeedSequence().generate_state(1)[0]))  # fresh every run
+    x = torch.randn(n, n_in, dtype=dtype, generator=g)
+    ws = [torch.randn(ha, n_in, dtype=dtype, generator=g) / n_in ** 0.5,
+          torch.randn(oa, ha, dtype=dtype, generator=g) / ha ** 0.5,
+          torch.randn(hb, n_in, dtype=dtype, generator=g) / n_in ** 0.5,
+          torch.randn(ob, hb, dtype=dtype, generator=g) / hb ** 0.5]
+    cots = torch.randn(n, oa, dtype=dtype, generator=g), torch.randn(n, ob, dtype=dtype, generator=g)
+    return x, ws, cots
+
+
+def _pair_grads(backend, x, ws, cots, need):
+    leaves = [t.clone().requires_grad_(r) for t, r in zip((x, *ws), need)]
+    if backend == "torch":
+        ya, yb = mlp2_torch(leaves[0], *leaves[1:3]), mlp2_torch(leaves[0], *leaves[3:])
+    else:
+        ya, yb = mlp2_pair(*leaves, backend=backend)
+    torch.autograd.backward([ya, yb], list(cots))
+    return (ya.detach(), yb.detach()), [t.grad for t in leaves]
+
+
+@pytest.mark.parametrize("need", [(True,) * 5, (True, False, False, False, False), (False, True, True, True, True)])
+@pytest.mark.parametrize("n, ha, hb, oa, ob", [(1, 32, 32, 1, 3), (2 * BLOCK + 37, 32, 32, 1, 3),
+                                               (700, 32, 16, 16, 3)])
+def test_pair_matches_two_reference_decoders(n, ha, hb, oa, ob, need):
+    """Two decoders on one input through one fused call: the outputs and every requested gradient of two
+    reference decoders (tracking needs the input's only, mapping the weights' too)."""
+    x, ws, cots = _pair_inputs(n, ha=ha, hb=hb, oa=oa, ob=ob)
+    outs_r, grads_r = _pair_grads("torch", x, ws, cots, need)
+    outs_f, grads_f = _pair_grads("numba", x, ws, cots, need)
+    for a, b in zip(outs_f, outs_r):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    for a, b, r in zip(grads_f, grads_r, need):
+        if not r:
+            assert a is None and b is None
+            continue
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4 * max(1.0, float(b.abs().max())))
+
+
+def test_pair_gradcheck_float64():
+    x, ws, _ = _pair_inputs(37, ha=8, hb=6, oa=2, ob=3, dtype=torch.float64)
+    leaves = [t.clone().requires_grad_() for t in (x, *ws)]
+    assert torch.autograd.gradcheck(lambda *a: mlp2_pair(*a, backend="numba"), leaves)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs CUDA"))])
+def test_pair_leaves_the_reference_to_the_caller(device):
+    """None (the caller runs its two decoders as before) for the torch backend, inside a second-order scope, and
+    for `auto` on GPU tensors; a fused call for `auto` on CPU tensors."""
+    x, ws, _ = (t for t in _pair_inputs(20))
+    x, ws = x.to(device), [w.to(device) for w in ws]
+    assert mlp2_pair(x, *ws, backend="torch") is None
+    with kernels.second_order():
+        assert mlp2_pair(x, *ws, backend="auto") is None
+    out = mlp2_pair(x.requires_grad_(), *ws, backend="auto")
+    assert (out is None) == (device != "cpu")
+    if out is not None:
+        assert "Mlp2FnBackward" in _graph_nodes(out[0].grad_fn)
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(

@@ -19,7 +19,7 @@ from inrslam.errors import ConfigError
 from inrslam.fields.config import Coupling, FieldConfig, KernelChoice, MlpPrecision
 from inrslam.fields.encoders import GridEncoder, TableEncoder, TensoRFEncoder, TriPlaneEncoder
 from inrslam.fields.gamma import FourierFeatures, make_gamma
-from inrslam.fields.kernels.mlp import mlp2
+from inrslam.fields.kernels.mlp import mlp2, mlp2_pair
 from inrslam.fields.kernels.mlp3 import mlp3
 from inrslam.fields.registry import ENCODINGS
 from inrslam.fields.resolution import plane_sizes
@@ -142,6 +142,10 @@ class EncoderField(Field):
     def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
         gam = self.gamma(p)
         feat = self.encoder(p)
+        if need_rgb and self.coupling is Coupling.COUPLED_BASE and not self.plane_style:
+            pair = self._decode_pair(feat, gam)
+            if pair is not None:
+                return pair
         h = self.decode(self.sdf_net, torch.cat([feat, gam], dim=-1))
         if self.plane_style:
             h = torch.tanh(h)
@@ -154,6 +158,17 @@ class EncoderField(Field):
         else:
             rgb_in = torch.cat([gam, feat], dim=-1)
         return FieldOutput(h[:, 0], self.decode(self.rgb_net, rgb_in))
+
+    def _decode_pair(self, feat: torch.Tensor, gam: torch.Tensor) -> FieldOutput | None:
+        """coupled_base with the fused decoders: D_s([f, γ]) and D_c([γ, f]) as one `mlp2_pair` call on [f, γ] (the
+        colour decoder's first-layer columns reordered to match); None where the decoders run in autograd."""
+        sdf1, sdf2 = cast(nn.Linear, self.sdf_net[0]), cast(nn.Linear, self.sdf_net[2])
+        rgb1, rgb2 = cast(nn.Linear, self.rgb_net[0]), cast(nn.Linear, self.rgb_net[2])
+        ng = gam.shape[1]
+        w1c = torch.cat([rgb1.weight[:, ng:], rgb1.weight[:, :ng]], dim=1)  # columns [γ, f] -> [f, γ]
+        out = mlp2_pair(torch.cat([feat, gam], dim=-1), sdf1.weight, sdf2.weight, w1c, rgb2.weight,
+                        self.decoder_backend)
+        return None if out is None else FieldOutput(out[0][:, 0], out[1])
 
 
 def check_bfloat16(device_type: str) -> None:

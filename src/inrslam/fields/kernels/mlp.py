@@ -86,6 +86,7 @@ def _backward(x, w1t, w2, gy, block, need_x, need_w, tiny, gx, gw1t_parts, gw2_p
     weight gradients gw1t_parts (B, I, H), gw2_parts (B, O, H) when need_w (summed over blocks by the caller).
     Subnormal values of gy (|v| < tiny) count as zero, and those of gx are set to zero (``subnormal``)."""
     n_pts = x.shape[0]
+    w1 = np.ascontiguousarray(w1t.T)  # (H, I): BLAS is faster on C-ordered operands here (1.1-1.35x per call)
     for b in prange((n_pts + block - 1) // block):
         n0 = b * block
         n1 = min(n_pts, n0 + block)
@@ -96,12 +97,12 @@ def _backward(x, w1t, w2, gy, block, need_x, need_w, tiny, gx, gw1t_parts, gw2_p
         gh = np.dot(gyb, w2)  # (m, H) gradient of the activation
         relu_mask_inplace(h, gh)  # h: the activation, gh: the pre-activation's gradient
         if need_x:
-            gxb = np.dot(gh, w1t.T)
+            gxb = np.dot(gh, w1)
             flush_inplace(gxb, tiny)
             gx[n0:n1] = gxb
         if need_w:
-            gw1t_parts[b] = np.dot(xb.T, gh)
-            gw2_parts[b] = np.dot(gyb.T, h)
+            gw1t_parts[b] = np.dot(np.ascontiguousarray(xb.T), gh)
+            gw2_parts[b] = np.dot(np.ascontiguousarray(gyb.T), h)
 
 
 def blas_fits(*weights) -> bool:
@@ -165,6 +166,25 @@ def mlp2(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, backend: str = "au
     if backend == "torch":
         return mlp2_torch(x, w1, w2)
     return Mlp2Fn.apply(x, w1, w2)
+
+
+def mlp2_pair(x: torch.Tensor, w1a: torch.Tensor, w2a: torch.Tensor, w1b: torch.Tensor, w2b: torch.Tensor,
+              backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Two decoders on the same input, (relu(x W1a^T) W2a^T, relu(x W1b^T) W2b^T): x (N, I), w1a (Ha, I), w2a
+    (Oa, Ha), w1b (Hb, I), w2b (Ob, Hb) -> (N, Oa), (N, Ob), through one fused kernel call each way: the first
+    layers stacked (Ha + Hb, I) and the second ones block-diagonal (Oa + Ob, Ha + Hb), so the samples are read, and
+    the input gradient written, once for both (and one input concatenation serves both). Same maths as two `mlp2`
+    calls; the hidden sums round the same, the input gradient (one sum over both hidden layers) differently.
+    Returns None where `backend` resolves to the reference (the caller runs its decoders as before)."""
+    fusable = cpu_floats(x, w1a, w2a, w1b, w2b) and x.shape[1] == w1a.shape[1] == w1b.shape[1]
+    if resolve_backend(backend, fusable) == "torch":
+        return None
+    w1 = torch.cat([w1a, w1b])
+    w2 = torch.block_diag(w2a, w2b)
+    if not blas_fits(w1.t(), w2):
+        return None
+    y = Mlp2Fn.apply(x, w1, w2)
+    return y[:, :w2a.shape[0]], y[:, w2a.shape[0]:]
 
 
 def resolve_backend(backend: str, fusable: bool) -> str:
