@@ -174,7 +174,7 @@ def mlp2_pair(x: torch.Tensor, w1a: torch.Tensor, w2a: torch.Tensor, w1b: torch.
     (Oa, Ha), w1b (Hb, I), w2b (Ob, Hb) -> (N, Oa), (N, Ob), through one fused kernel call each way: the first
     layers stacked (Ha + Hb, I) and the second ones block-diagonal (Oa + Ob, Ha + Hb), so the samples are read, and
     the input gradient written, once for both (and one input concatenation serves both). Same maths as two `mlp2`
-    calls; the hidden sums round the same, the input gradient (one sum over both hidden layers) differently.
+    calls, rounded differently (e.g. the input gradient is one sum over both hidden layers).
     Returns None where `backend` resolves to the reference (the caller runs its decoders as before)."""
     fusable = cpu_floats(x, w1a, w2a, w1b, w2b) and x.shape[1] == w1a.shape[1] == w1b.shape[1]
     if resolve_backend(backend, fusable) == "torch":
