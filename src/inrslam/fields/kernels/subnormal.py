@@ -4,10 +4,10 @@ Volume rendering makes gradients far below float32's smallest normal number (1.2
 surface get weights below exp(-87), and so do their colour and SDF gradients. x86 CPUs compute with such subnormal
 operands tens of times slower than with normal ones; in a `paper` tracking iteration about 2.6 % of the decoders'
 output gradients are subnormal, and the decoder's backward took 1.4-4x longer than with them set to zero
-(docs/speed.md, "Subnormal gradients in the fused kernels"). The fused backward kernels therefore count a subnormal gradient as zero
-where it enters (and the decoders' input gradient where it leaves). Such a gradient moves no float32 parameter of
-magnitude above about 1e-30 in an optimiser step, so results change in their last bits at most — as the fused
-kernels' rounding already does — and the reference path (`paper`) is untouched.
+(docs/speed.md, "Subnormal gradients in the fused kernels"). The fused backward kernels therefore count a
+subnormal gradient as zero where it enters (and the decoders' input gradient where it leaves). Such a gradient moves
+no float32 parameter of magnitude above about 1e-30 in an optimiser step, so results change in their last bits at
+most — as the fused kernels' rounding already does — and the reference path (`paper`) is untouched.
 """
 
 from __future__ import annotations
