@@ -13,10 +13,9 @@ its own input and runs its own fused kernel, as before. See docs/speed.md, "Fuse
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import statistics
-import time
+from collections.abc import Callable
+
+from iteration_setup import interleaved, machine_line, paper_map
 
 
 def main() -> None:
@@ -26,62 +25,22 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=8, help="frames run first to build the map")
     ap.add_argument("--reps", type=int, default=30)
     args = ap.parse_args()
-    import torch
-
-    from inrslam.config import load_config
-    from inrslam.datasets import open_dataset
     from inrslam.fields.models import EncoderField
-    from inrslam.slam.frame_tensors import FrameTensors
-    from inrslam.slam.system import SlamSystem
-    from inrslam.slam.tracking import frozen
 
-    cfg = load_config(preset="paper", overrides=[
-        f"data.path={args.data}", f"data.max_frames={args.frames + 1}", f"field.encoding={args.encoding}",
-        "field.decoder_kernel=numba", "loss.kernel=numba", "slam.init_iters=100", "slam.checkpoint_every=0",
-        "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false"])
-    system = SlamSystem(cfg, open_dataset(cfg.data))
-    for i in range(args.frames):
-        system.process(i)
-    model = system.model
-    ft = FrameTensors(system.dataset[args.frames], system.device)
-    g = torch.Generator().manual_seed(0)
-    c2w = system.est[args.frames - 1].clone()
-    track_rays = ft.sample(cfg.slam.track_pixels, g, cfg.slam.track_edge)
-    map_rays = ft.sample(cfg.slam.map_pixels, g)
+    bench = paper_map(args.encoding, args.data, args.frames, ["field.decoder_kernel=numba", "loss.kernel=numba"])
     pair = EncoderField._decode_pair
 
-    def use_pair(on: bool) -> None:
-        EncoderField._decode_pair = pair if on else (lambda self, feat, gam: None)  # type: ignore[method-assign]
+    def use_pair(on: bool) -> Callable[[], None]:
+        def setter() -> None:
+            EncoderField._decode_pair = pair if on else (lambda self, feat, gam: None)  # type: ignore[method-assign]
+        return setter
 
-    def track_iter() -> None:
-        pose = c2w.clone().requires_grad_()
-        with frozen(model):
-            losses, _ = model.loss(pose, *track_rays, g)
-            losses["total"].backward()
-
-    def map_iter() -> None:
-        losses, _ = model.loss(c2w, *map_rays, g)
-        losses["total"].backward()
-        model.zero_grad(set_to_none=True)
-
-    print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
-          f", threads {torch.get_num_threads()}; {args.data}, F={args.encoding}, paper settings + every fused kernel, "
-          f"median of {args.reps}")
-    for name, step in (("tracking", track_iter), (f"mapping ({cfg.slam.map_pixels} rays)", map_iter)):
-        times: dict[bool, list[float]] = {True: [], False: []}
-        for on in (False, True):  # warm-up
-            use_pair(on)
-            step()
-        for _ in range(args.reps):
-            for on in (False, True):
-                use_pair(on)
-                t0 = time.perf_counter()
-                step()
-                times[on].append((time.perf_counter() - t0) * 1e3)
-        two, one = statistics.median(times[False]), statistics.median(times[True])
-        print(f"{name} iteration: two decoder calls {two:7.2f} ms, one call {one:7.2f} ms: {two / one:4.2f}x",
-              flush=True)
-    use_pair(True)
+    print(machine_line(f"{args.data}, F={args.encoding}, paper settings + every fused kernel, median of {args.reps}"))
+    for name, step in (("tracking", bench.track_iter), (f"mapping ({bench.cfg.slam.map_pixels} rays)", bench.map_iter)):
+        ms = interleaved(step, {"two": use_pair(False), "one": use_pair(True)}, args.reps)
+        print(f"{name} iteration: two decoder calls {ms['two']:7.2f} ms, one call {ms['one']:7.2f} ms: "
+              f"{ms['two'] / ms['one']:4.2f}x", flush=True)
+    EncoderField._decode_pair = pair  # type: ignore[method-assign]
 
 
 if __name__ == "__main__":

@@ -20,10 +20,8 @@ from __future__ import annotations
 
 import argparse
 import functools
-import os
-import platform
-import statistics
-import time
+
+from iteration_setup import interleaved, machine_line, paper_map
 
 
 def main() -> None:
@@ -33,33 +31,15 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=6, help="frames run first to build the map")
     ap.add_argument("--reps", type=int, default=30)
     args = ap.parse_args()
-    import torch
-
     import inrslam.fields.encoders as encoders_mod
     import inrslam.slam.model as model_mod
-    from inrslam.config import load_config
-    from inrslam.datasets import open_dataset
     from inrslam.fields.config import MlpPrecision
     from inrslam.fields.kernels.combine import plane_sum, vm_product
     from inrslam.fields.models import MLPField
     from inrslam.rendering.sampling import sample_depths
-    from inrslam.slam.frame_tensors import FrameTensors
-    from inrslam.slam.system import SlamSystem
-    from inrslam.slam.tracking import frozen
 
-    cfg = load_config(preset="paper", overrides=[
-        f"data.path={args.data}", f"data.max_frames={args.frames + 1}", f"field.encoding={args.encoding}",
-        "slam.init_iters=100", "slam.checkpoint_every=0", "mesh.enabled=false", "eval.enabled=false",
-        "output.tensorboard=false"])
-    system = SlamSystem(cfg, open_dataset(cfg.data))
-    for i in range(args.frames):
-        system.process(i)
-    model = system.model
-    ft = FrameTensors(system.dataset[args.frames], system.device)
-    g = torch.Generator().manual_seed(0)
-    c2w = system.est[args.frames - 1].clone()
-    track_rays = ft.sample(cfg.slam.track_pixels, g, cfg.slam.track_edge)
-    map_rays = ft.sample(cfg.slam.map_pixels, g)
+    bench = paper_map(args.encoding, args.data, args.frames)
+    model = bench.model
 
     def variant(sampler: str, decoder: str, loss: str, combine: str = "auto", precision: str = "float32") -> None:
         model_mod.sample_depths = functools.partial(sample_depths, kernel=sampler)  # type: ignore[assignment]
@@ -81,35 +61,13 @@ def main() -> None:
         variants += [("paper, mlp.precision=bfloat16", ("auto", "torch", "torch", "auto", "bfloat16")),
                      ("+ loss.kernel=numba, bfloat16", ("auto", "torch", "numba", "auto", "bfloat16"))]
 
-    def track_iter() -> None:
-        pose = c2w.clone().requires_grad_()
-        with frozen(model):
-            losses, _ = model.loss(pose, *track_rays, g)
-            losses["total"].backward()
-
-    def map_iter() -> None:
-        losses, _ = model.loss(c2w, *map_rays, g)
-        losses["total"].backward()
-        model.zero_grad(set_to_none=True)
-
-    print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
-          f", threads {torch.get_num_threads()}; {args.data}, F={args.encoding}, paper settings, median of {args.reps}")
-    for name, step in (("tracking", track_iter), (f"mapping ({cfg.slam.map_pixels} rays)", map_iter)):
-        times: dict[str, list[float]] = {v[0]: [] for v in variants}
-        for _, v in variants:  # warm-up: numba compiles or loads its caches
-            variant(*v)
-            step()
-        for _ in range(args.reps):
-            for label, v in variants:
-                variant(*v)
-                t0 = time.perf_counter()
-                step()
-                times[label].append((time.perf_counter() - t0) * 1e3)
-        base = statistics.median(times[variants[0][0]])
+    print(machine_line(f"{args.data}, F={args.encoding}, paper settings, median of {args.reps}"))
+    for name, step in (("tracking", bench.track_iter), (f"mapping ({bench.cfg.slam.map_pixels} rays)", bench.map_iter)):
+        ms = interleaved(step, {label: functools.partial(variant, *v) for label, v in variants}, args.reps)
+        base = ms[variants[0][0]]
         print(f"{name} iteration:")
         for label, _ in variants:
-            m = statistics.median(times[label])
-            print(f"  {label:<32} {m:7.2f} ms  {base / m:5.2f}x", flush=True)
+            print(f"  {label:<32} {ms[label]:7.2f} ms  {base / ms[label]:5.2f}x", flush=True)
     variant("auto", "torch", "torch")
     encoders_mod.vm_product, encoders_mod.plane_sum = vm_product, plane_sum  # type: ignore[assignment]
 

@@ -1,0 +1,85 @@
+"""Shared set-up of the per-iteration benchmarks (`bench_iteration.py`, `bench_subnormal.py`,
+`bench_decoder_pair.py`): a `paper` map built over a few frames of a scene, and one tracking and one mapping
+iteration (loss forward + backward, no optimiser step) on rays fixed once, so that code variants can be timed
+interleaved in one process on the same work. Not a benchmark itself."""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass
+class IterationBench:
+    cfg: Any  # the run's config
+    model: Any  # the SceneModel after `frames` frames
+    track_iter: Callable[[], None]  # one tracking iteration: the loss's gradient to a pose (map frozen)
+    map_iter: Callable[[], None]  # one mapping iteration: the loss's gradient to the map (gradients cleared after)
+
+
+def paper_map(encoding: str, data: str, frames: int, overrides: Sequence[str] = ()) -> IterationBench:
+    """`paper` settings plus `overrides`, 100 initialisation iterations, frames 0..frames-1 processed; rays of
+    frame `frames` sampled once (seed 0) at the tracking and mapping batch sizes."""
+    import torch
+
+    from inrslam.config import load_config
+    from inrslam.datasets import open_dataset
+    from inrslam.slam.frame_tensors import FrameTensors
+    from inrslam.slam.system import SlamSystem
+    from inrslam.slam.tracking import frozen
+
+    cfg = load_config(preset="paper", overrides=[
+        f"data.path={data}", f"data.max_frames={frames + 1}", f"field.encoding={encoding}", "slam.init_iters=100",
+        "slam.checkpoint_every=0", "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false",
+        *overrides])
+    system = SlamSystem(cfg, open_dataset(cfg.data))
+    for i in range(frames):
+        system.process(i)
+    model = system.model
+    ft = FrameTensors(system.dataset[frames], system.device)
+    g = torch.Generator().manual_seed(0)
+    c2w = system.est[frames - 1].clone()
+    track_rays = ft.sample(cfg.slam.track_pixels, g, cfg.slam.track_edge)
+    map_rays = ft.sample(cfg.slam.map_pixels, g)
+
+    def track_iter() -> None:
+        pose = c2w.clone().requires_grad_()
+        with frozen(model):
+            losses, _ = model.loss(pose, *track_rays, g)
+            losses["total"].backward()
+
+    def map_iter() -> None:
+        losses, _ = model.loss(c2w, *map_rays, g)
+        losses["total"].backward()
+        model.zero_grad(set_to_none=True)
+
+    return IterationBench(cfg, model, track_iter, map_iter)
+
+
+def machine_line(what: str) -> str:
+    """'# machine: ..., cores, torch ..., threads ...; <what>' for a benchmark's first line."""
+    import torch
+
+    return (f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
+            f"{torch.__version__}, threads {torch.get_num_threads()}; {what}")
+
+
+def interleaved(step: Callable[[], None], variants: dict[str, Callable[[], None]], reps: int) -> dict[str, float]:
+    """Median ms of `step` under each variant (a setter called before each timed step), the variants taking turns
+    rep by rep after one warm-up step each."""
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    for setter in variants.values():
+        setter()
+        step()
+    for _ in range(reps):
+        for name, setter in variants.items():
+            setter()
+            t0 = time.perf_counter()
+            step()
+            times[name].append((time.perf_counter() - t0) * 1e3)
+    return {name: statistics.median(t) for name, t in times.items()}
