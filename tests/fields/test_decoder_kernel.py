@@ -4,6 +4,7 @@ and the field switch `field.decoder_kernel`."""
 import numpy as np
 import pytest
 import torch
+from autograd_graph import node_names
 
 from inrslam.fields import kernels
 from inrslam.fields.config import FieldConfig
@@ -165,7 +166,7 @@ def test_field_decoder_kernel_switch(encoding):
         torch.manual_seed(0)
         field = build_field(FieldConfig(encoding=encoding, decoder_kernel=kernel, log2_hashmap_size=12), bounds)
         out = field(pts)
-        fused = {"Mlp2FnBackward", "Mlp3FnBackward"} & _graph_nodes(out.sdf.grad_fn)
+        fused = {"Mlp2FnBackward", "Mlp3FnBackward"} & node_names(out.sdf.grad_fn)
         assert bool(fused) == (kernel == "numba")
         p = pts.clone().requires_grad_()
         out2 = field(p)
@@ -174,19 +175,6 @@ def test_field_decoder_kernel_switch(encoding):
                            field.rgb_net[0].weight.grad.clone(), field.rgb_net[-1].weight.grad.clone(), p.grad)
     for a, b in zip(results["torch"], results["numba"]):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
-
-
-def _graph_nodes(fn, depth: int = 6) -> set[str]:
-    """Names of the autograd nodes within `depth` steps of `fn`."""
-    names, frontier = set(), [fn]
-    for _ in range(depth):
-        nxt = []
-        for node in frontier:
-            if node is not None:
-                names.add(node.name())
-                nxt += [n for n, _ in node.next_functions]
-        frontier = nxt
-    return names
 
 
 def _pair_inputs(n, n_in=7, ha=32, hb=32, oa=1, ob=3, dtype=torch.float32):
@@ -247,7 +235,7 @@ def test_pair_leaves_the_reference_to_the_caller(device):
     out = mlp2_pair(x.requires_grad_(), *ws, backend="auto")
     assert (out is None) == (device != "cpu")
     if out is not None:
-        assert "Mlp2FnBackward" in _graph_nodes(out[0].grad_fn)
+        assert "Mlp2FnBackward" in node_names(out[0].grad_fn)
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(

@@ -13,6 +13,7 @@ import typing
 import numpy as np
 import pytest
 import torch
+from autograd_graph import node_names
 
 from inrslam.config import RunConfig, load_config
 from inrslam.fields import ENCODINGS
@@ -146,19 +147,6 @@ def test_held_out_refined_surface_search_finds_a_ball_the_uniform_samples_step_o
     torch.testing.assert_close(refined[~on_ball], plain[~on_ball])  # elsewhere the same surface
 
 
-def _graph_names(root) -> set[str]:
-    """Every autograd node name reachable from `root`."""
-    seen, names, stack = set(), set(), [root]
-    while stack:
-        node = stack.pop()
-        if node is None or node in seen:
-            continue
-        seen.add(node)
-        names.add(node.name())
-        stack += [n for n, _ in node.next_functions]
-    return names
-
-
 @pytest.mark.parametrize("preset, fused", [("fast", True), ("accurate", False), ("paper", False)])
 def test_which_presets_run_the_fused_decoders_and_losses(preset, fused):
     """`fast` trains its map through the fused decoders (both in one call) and the fused losses; `accurate` and
@@ -168,7 +156,7 @@ def test_which_presets_run_the_fused_decoders_and_losses(preset, fused):
     model = SceneModel(cfg, BOUNDS)
     c2w, dirs, rgb, depth = _rays()
     losses, _ = model.loss(c2w, dirs, rgb, depth, torch.Generator().manual_seed(1))
-    names = _graph_names(losses["total"].grad_fn)
+    names = node_names(losses["total"].grad_fn)
     assert ("Mlp2FnBackward" in names) == fused and ("CompositeLossFnBackward" in names) == fused
     losses["total"].backward()
     assert all(p.grad is not None for p in model.field.parameters())
