@@ -139,7 +139,7 @@ def test_config_shows_each_keys_help_and_still_loads(capsys):
     assert "#" not in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("key", ["field.kernel", "field.decoder_kernel", "loss.kernel"])
+@pytest.mark.parametrize("key", ["field.kernel", "field.decoder_kernel", "loss.kernel", "render.kernel"])
 def test_a_cpu_only_kernel_on_a_gpu_device_is_a_one_line_config_error(monkeypatch, key):
     import re
 

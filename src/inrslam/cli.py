@@ -194,7 +194,7 @@ def _check_device(cfg) -> None:
     device = resolve_device(cfg.device)
     if device.type != "cpu":
         for key, value in (("field.kernel", cfg.field.kernel), ("field.decoder_kernel", cfg.field.decoder_kernel),
-                           ("loss.kernel", cfg.loss.kernel)):
+                           ("loss.kernel", cfg.loss.kernel), ("render.kernel", cfg.render.kernel)):
             if value == "numba":  # str enums (KernelChoice) compare equal to their value
                 raise ConfigError(f"config key '{key}': 'numba' runs on CPU tensors only and the run's device is "
                                   f"{device}; use auto (numba on CPU, torch elsewhere) or torch")

@@ -149,8 +149,8 @@ def test_held_out_refined_surface_search_finds_a_ball_the_uniform_samples_step_o
 
 @pytest.mark.parametrize("preset, fused", [("fast", True), ("accurate", False), ("paper", False)])
 def test_which_presets_run_the_fused_decoders_and_losses(preset, fused):
-    """`fast` trains its map through the fused decoders (both in one call) and the fused losses; `accurate` and
-    `paper` through autograd's (their results stay as measured, `paper`'s bit for bit)."""
+    """`fast` trains its map through the fused decoders (both in one call), G's fused weights and the fused losses;
+    `accurate` and `paper` through autograd's (their results stay as measured, `paper`'s bit for bit)."""
     cfg = load_config(preset=preset, overrides=TINY)
     torch.manual_seed(0)
     model = SceneModel(cfg, BOUNDS)
@@ -158,5 +158,6 @@ def test_which_presets_run_the_fused_decoders_and_losses(preset, fused):
     losses, _ = model.loss(c2w, dirs, rgb, depth, torch.Generator().manual_seed(1))
     names = node_names(losses["total"].grad_fn)
     assert ("Mlp2FnBackward" in names) == fused and ("CompositeLossFnBackward" in names) == fused
+    assert ({"DirectWeightsFnBackward", "DensityWeightsFnBackward"} & set(names) != set()) == fused
     losses["total"].backward()
     assert all(p.grad is not None for p in model.field.parameters())

@@ -23,9 +23,12 @@ import torch
 from torch import Tensor, nn
 
 from inrslam.errors import ConfigError
+from inrslam.fields.config import KernelChoice
+from inrslam.fields.kernels.function import cpu_floats, resolve_kernel
 from inrslam.registry import Registry
 from inrslam.rendering import functional as F
 from inrslam.rendering.config import NerfActivation, NormalsMethod, RenderConfig
+from inrslam.rendering.weights_kernel import density_weights_fused, direct_weights_fused
 
 RENDERERS: Registry[type["SdfToWeights"]] = Registry("renderer")
 
@@ -42,6 +45,8 @@ class SdfToWeights(nn.Module):
         normals_method: how `render_rays` computes them (`NormalsMethod`).
         fd_eps: finite-difference step, metres.
         faithful: reproduce the reference code's quirks.
+        kernel: `render.kernel` ("torch", "numba", "auto"): the fused weights of `weights_kernel` where the renderer
+            has them (direct, density).
     """
 
     needs_normals: bool = False
@@ -53,6 +58,12 @@ class SdfToWeights(nn.Module):
         self.normals_method = NormalsMethod(cfg.neus.normals)
         self.fd_eps = float(cfg.neus.fd_eps)
         self.progress = 1.0
+        self.kernel = KernelChoice(cfg.kernel).value
+
+    def fused(self, *tensors: Tensor) -> bool:
+        """Whether `render.kernel` runs the fused weights on these tensors (never inside a second-order scope)."""
+        return resolve_kernel(self.kernel, cpu_floats(*tensors), "render.kernel",
+                              "CPU float32/float64 tensors of one dtype") == "numba"
 
     def set_progress(self, progress: float) -> None:
         """Tell the renderer how far the run is (0 = first frame, 1 = last); used by annealing schedules."""
@@ -76,6 +87,8 @@ class DirectWeights(SdfToWeights):
     """
 
     def forward(self, sdf, z, dirs, normals, truncation):
+        if self.fused(sdf, z):
+            return direct_weights_fused(sdf, z, truncation, no_crossing_keeps_all=not self.faithful)
         return F.direct_weights(sdf, z, truncation, no_crossing_keeps_all=not self.faithful)
 
 
@@ -94,6 +107,8 @@ class DensityWeights(SdfToWeights):
 
     def forward(self, sdf, z, dirs, normals, truncation):
         beta = self.beta.clamp_min(1e-3)
+        if self.fused(sdf, beta):
+            return density_weights_fused(sdf, beta)
         return F.weights_from_optical_depth(F.density_optical_depth(sdf, beta))
 
 
