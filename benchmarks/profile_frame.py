@@ -23,6 +23,7 @@ GROUPS = {  # profiler event name prefix -> group
     "CompositeLossFnBackward": "compositing + losses, backward", "CompositeLossFn": "compositing + losses, forward",
     "DensityWeightsFnBackward": "G's weights, backward", "DensityWeightsFn": "G's weights, forward",
     "DirectWeightsFnBackward": "G's weights, backward", "DirectWeightsFn": "G's weights, forward",
+    "RayPointsFnBackward": "sample points, backward", "RayPointsFn": "sample points, forward",
     "Optimizer.step#LazyAdam": "lazy Adam step (map)", "Optimizer.step#Adam": "Adam step (poses)",
 }
 

@@ -1,19 +1,24 @@
-"""The fused weights of G (`inrslam.rendering.weights_kernel`, `render.kernel`) against their references
+"""`render.kernel`: the fused weights of G (`inrslam.rendering.weights_kernel`) against their references
 (`functional.weights_from_optical_depth(density_optical_depth(...))`, `functional.direct_weights`): values and
 gradients on fresh random rays, float64 gradcheck, analytic rays, subnormal gradients, thread-count independence,
-and the renderers' dispatch."""
+and the renderers' dispatch; and the fused sample points inside `render_losses` (the kernel itself:
+tests/fields/test_ray_points.py)."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
+from autograd_graph import node_names
 
+from inrslam.fields import FieldConfig, build_field
 from inrslam.fields.kernels import second_order
 from inrslam.fields.kernels.threads import thread_scope
 from inrslam.rendering import functional as F
-from inrslam.rendering.config import RenderConfig
+from inrslam.rendering import render_losses
+from inrslam.rendering.config import LossConfig, RenderConfig
 from inrslam.rendering.renderers import build_renderer
 from inrslam.rendering.weights_kernel import density_weights_fused, direct_weights_fused
 
@@ -191,3 +196,35 @@ def test_renderers_dispatch_by_render_kernel(name, device):
         renderer = build_renderer(RenderConfig(name=name, kernel="numba"))
         with pytest.raises(ValueError, match="render.kernel 'numba' needs CPU float32/float64"):
             renderer(sdf.double(), z.float(), dirs, None, T)  # mixed dtypes
+
+
+@pytest.mark.parametrize("name", ["density", "direct", "volsdf", "neus"])
+def test_render_kernel_also_fuses_the_sample_points(name):
+    """With `render.kernel` numba, the sample points reach the field normalised by one fused pass
+    (`kernels.ray_points`), except for a G that needs normals, a field without `decode_normalised` or a z that needs
+    a gradient; losses and the gradients to the rays' origins and directions equal the reference's to rounding."""
+    torch.manual_seed(0)
+    field = build_field(FieldConfig(encoding="dense", block_coarse=0.5, block_fine=0.25),
+                        np.array([[-2.0, 2.0], [-2.0, 2.0], [0.0, 4.0]]))
+    g = torch.Generator().manual_seed(3)
+    R, S = 32, 16
+    origins = (0.1 * torch.randn(R, 3, generator=g)).requires_grad_()
+    dirs = torch.cat([0.4 * torch.rand(R, 2, generator=g) - 0.2, torch.ones(R, 1)], dim=1).requires_grad_()
+    z = torch.sort(0.5 + 3 * torch.rand(R, S, generator=g), dim=1).values
+    C, D = torch.rand(R, 3, generator=g), 1 + 2 * torch.rand(R, generator=g)
+    res = {}
+    for kernel in ("torch", "numba"):
+        renderer = build_renderer(RenderConfig(name=name, kernel=kernel))
+        losses, _ = render_losses(field, renderer, origins, dirs, z, C, D, LossConfig(), 0.1)
+        res[kernel] = (losses["total"], *torch.autograd.grad(losses["total"], (origins, dirs), retain_graph=True))
+        res[kernel + "_names"] = node_names(losses["total"].grad_fn)
+    assert ("RayPointsFnBackward" in res["numba_names"]) == (name != "neus")
+    assert "RayPointsFnBackward" not in res["torch_names"]
+    for a, b in zip(res["numba"], res["torch"]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+    assert float(res["torch"][1].abs().max()) > 0  # the pose gradients are not vacuous
+    renderer = build_renderer(RenderConfig(name=name, kernel="numba"))
+    plain, _ = render_losses(lambda x: field(x), renderer, origins, dirs, z, C, D, LossConfig(), 0.1)
+    assert "RayPointsFnBackward" not in node_names(plain["total"].grad_fn)  # a callable without decode_normalised
+    zg, _ = render_losses(field, renderer, origins, dirs, z.clone().requires_grad_(), C, D, LossConfig(), 0.1)
+    assert "RayPointsFnBackward" not in node_names(zg["total"].grad_fn)

@@ -86,13 +86,22 @@ class Field(nn.Module):
         self.extent = b[:, 1] - b[:, 0]  # (3,) metres, float64 (resolution rules)
         self.decoder_backend = KernelChoice(cfg.decoder_kernel).value  # grid and plane decoders (`decode`)
 
+    def box(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """(b_min, b_max − b_min), each (3,) metres in `dtype`: the normalisation p̂ = (x − b_min)/(b_max − b_min)."""
+        b = self.bounds.to(dtype)
+        return b[:, 0], b[:, 1] - b[:, 0]
+
     def normalise(self, x: torch.Tensor) -> torch.Tensor:
         """p̂ = (x − b_min)/(b_max − b_min), (N,3), not clamped."""
-        b = self.bounds.to(x.dtype)
-        return (x - b[:, 0]) / (b[:, 1] - b[:, 0])
+        lo, ext = self.box(x.dtype)
+        return (x - lo) / ext
 
     def forward(self, x: torch.Tensor) -> FieldOutput:
         return self._decode(self.normalise(x), need_rgb=True)
+
+    def decode_normalised(self, p: torch.Tensor) -> FieldOutput:
+        """F at points already normalised (p̂ (N,3), e.g. by `kernels.ray_points`): `forward` without `normalise`."""
+        return self._decode(p, need_rgb=True)
 
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
         """SDF only (skips the colour branch), (N,) truncation units."""

@@ -89,7 +89,7 @@ class RenderConfig:
     name: str = "density"  # renderer: direct | density | neus | volsdf | nerf
     beta_lr: float = 1e-3  # learning rate of every learnable rendering parameter (beta, inv_s, VolSDF beta)
     faithful: bool = False  # reproduce the reference code's quirks (direct k=0 fallback, NeuS units/annealing)
-    kernel: KernelChoice = KernelChoice.TORCH  # direct / density weights: torch (autograd) | numba (fused, CPU) | auto
+    kernel: KernelChoice = KernelChoice.TORCH  # points + direct/density weights: torch | numba (fused, CPU) | auto
     density: DensityConfig = field(default_factory=DensityConfig)  # SDF(density)
     neus: NeusConfig = field(default_factory=NeusConfig)  # NeuS
     volsdf: VolSdfConfig = field(default_factory=VolSdfConfig)  # VolSDF

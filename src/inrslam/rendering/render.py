@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from inrslam.fields.kernels import input_grad_only, second_order
+from inrslam.fields.kernels.ray_points import ray_points_normalised
 from inrslam.rendering.compositing import composite
 from inrslam.rendering.config import NormalsMethod
 
@@ -127,14 +128,22 @@ def render_rays(field: Callable[[Tensor], Any], renderer, origins: Tensor, dirs:
     return RenderOutput(out_rgb, depth, opacity, depth_var, weights, sdf, z, normals)
 
 
+def _fused_points(field, renderer, origins: Tensor, dirs: Tensor, z: Tensor) -> bool:
+    """Whether the sample points go through `kernels.ray_points`: the renderer's `render.kernel` picks numba for
+    these tensors, the field takes normalised points (`Field.decode_normalised`), and z needs no gradient."""
+    fused = getattr(renderer, "fused", None)
+    return (fused is not None and hasattr(field, "decode_normalised") and not z.requires_grad
+            and fused(origins, dirs, z))
+
+
 def render_samples(field: Callable[[Tensor], Any], renderer, origins: Tensor, dirs: Tensor, z: Tensor,
                    truncation: float) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """`render_rays` before compositing: sdf (R, S) T-units, colours (R, S, 3), G's weights (R, S) and the normals
     (R, S, 3) or None."""
     R, S = z.shape
-    points = ray_points(origins, dirs, z).reshape(-1, 3)
     normals = None
     if getattr(renderer, "needs_normals", False):
+        points = ray_points(origins, dirs, z).reshape(-1, 3)
         method = NormalsMethod(getattr(renderer, "normals_method", NormalsMethod.AUTOGRAD))
         faithful = bool(getattr(renderer, "faithful", False))
         if method is NormalsMethod.FINITE_DIFFERENCE:
@@ -145,8 +154,12 @@ def render_samples(field: Callable[[Tensor], Any], renderer, origins: Tensor, di
                 field, points, create_graph=method is NormalsMethod.AUTOGRAD, include_rgb=faithful
             )
         normals = normals.reshape(R, S, 3)
+    elif _fused_points(field, renderer, origins, dirs, z):  # `render.kernel`: p̂ in one pass (bit-identical values)
+        lo, ext = field.box(z.dtype)
+        out = field.decode_normalised(ray_points_normalised(origins, dirs, z, lo, ext))
+        sdf, logits = out.sdf, out.rgb_logits
     else:
-        sdf, logits = _query(field, points)
+        sdf, logits = _query(field, ray_points(origins, dirs, z).reshape(-1, 3))
     sdf = sdf.reshape(R, S)
     rgb = torch.sigmoid(logits.reshape(R, S, 3))
     return sdf, rgb, renderer(sdf, z, dirs, normals, truncation), normals
