@@ -39,24 +39,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--encoding", default="dense")
     ap.add_argument("--data", default="builtin:room")
-    ap.add_argument("--warmup", type=int, default=6, help="frames run before profiling (0 = initialisation)")
+    ap.add_argument("--warmup", type=int, default=6, help="frames run before profiling (>= 1: frame 0 initialises "
+                    "the map, which is neither tracking nor mapping)")
     ap.add_argument("--frames", type=int, default=5, help="frames profiled")
     ap.add_argument("--init-iters", type=int, default=100)
     ap.add_argument("--set", nargs="*", default=FUSED, metavar="KEY=VALUE",
                     help="config overrides (default: every fused kernel on)")
     args = ap.parse_args()
+    if args.warmup < 1:
+        ap.error("--warmup must be at least 1")
     from torch.profiler import ProfilerActivity, profile, record_function
 
     import inrslam.slam.system as system_mod
     from inrslam.config import load_config
     from inrslam.datasets import open_dataset
-    from inrslam.slam.system import SlamSystem
 
     cfg = load_config(preset="paper", overrides=[
         f"data.path={args.data}", f"data.max_frames={args.warmup + args.frames}", f"field.encoding={args.encoding}",
         f"slam.init_iters={args.init_iters}", "slam.checkpoint_every=0", "mesh.enabled=false", "eval.enabled=false",
         "output.tensorboard=false", *args.set])
-    system = SlamSystem(cfg, open_dataset(cfg.data))
+    system = system_mod.SlamSystem(cfg, open_dataset(cfg.data))
     for i in range(args.warmup):
         system.process(i)
 

@@ -155,8 +155,9 @@ def render_samples(field: Callable[[Tensor], Any], renderer, origins: Tensor, di
             )
         normals = normals.reshape(R, S, 3)
     elif _fused_points(field, renderer, origins, dirs, z):  # `render.kernel`: p̂ in one pass (bit-identical values)
-        lo, ext = field.box(z.dtype)
-        out = field.decode_normalised(ray_points_normalised(origins, dirs, z, lo, ext))
+        f: Any = field  # a `Field`: `_fused_points` checked that it takes normalised points
+        lo, ext = f.box(z.dtype)
+        out = f.decode_normalised(ray_points_normalised(origins, dirs, z, lo, ext))
         sdf, logits = out.sdf, out.rgb_logits
     else:
         sdf, logits = _query(field, ray_points(origins, dirs, z).reshape(-1, 3))

@@ -46,7 +46,8 @@ class SdfToWeights(nn.Module):
         fd_eps: finite-difference step, metres.
         faithful: reproduce the reference code's quirks.
         kernel: `render.kernel` ("torch", "numba", "auto"): the fused weights of `weights_kernel` where the renderer
-            has them (direct, density).
+            has them (direct, density), and for any renderer without normals the fused sample points of
+            `render_samples`.
     """
 
     needs_normals: bool = False
@@ -61,7 +62,7 @@ class SdfToWeights(nn.Module):
         self.kernel = KernelChoice(cfg.kernel).value
 
     def fused(self, *tensors: Tensor) -> bool:
-        """Whether `render.kernel` runs the fused weights on these tensors (never inside a second-order scope)."""
+        """Whether `render.kernel` runs its fused kernels on these tensors (never inside a second-order scope)."""
         return resolve_kernel(self.kernel, cpu_floats(*tensors), "render.kernel",
                               "CPU float32/float64 tensors of one dtype") == "numba"
 
