@@ -21,15 +21,12 @@ from __future__ import annotations
 import argparse
 import functools
 
-from iteration_setup import interleaved, machine_line, paper_map
+from iteration_setup import add_map_arguments, interleaved, machine_line, paper_map
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--encoding", default="dense")
-    ap.add_argument("--data", default="builtin:room")
-    ap.add_argument("--frames", type=int, default=6, help="frames run first to build the map")
-    ap.add_argument("--reps", type=int, default=30)
+    add_map_arguments(ap, frames=6)
     args = ap.parse_args()
     import inrslam.fields.encoders as encoders_mod
     import inrslam.slam.model as model_mod

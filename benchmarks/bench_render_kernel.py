@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-from iteration_setup import interleaved, machine_line, paper_map
+from iteration_setup import add_map_arguments, interleaved, machine_line, paper_map
 
 
 def weights_alone(render: str, R: int, S: int, reps: int) -> tuple[float, float]:
@@ -65,10 +65,7 @@ def points_alone(R: int, S: int, reps: int) -> tuple[float, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--render", default="density", choices=["density", "direct"])
-    ap.add_argument("--encoding", default="dense")
-    ap.add_argument("--data", default="builtin:room")
-    ap.add_argument("--frames", type=int, default=8, help="frames run first to build the map")
-    ap.add_argument("--reps", type=int, default=30)
+    add_map_arguments(ap)
     args = ap.parse_args()
 
     print(machine_line(f"SDF({args.render}), float32, median of {args.reps} (each piece alone: of {3 * args.reps})"))

@@ -20,22 +20,20 @@ import platform
 import time
 from collections.abc import Sequence
 
+from iteration_setup import paper_config
+
 ENCODINGS = ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+tri"]
 
 
 def run_one(encoding: str, kernel: str, frames: int, render: str, data: str, init_iters: int,
             overrides: Sequence[str] = (), decoder: str = "torch", loss: str = "torch",
             precision: str = "float32") -> dict:
-    from inrslam.config import load_config
     from inrslam.datasets import open_dataset
     from inrslam.slam.system import SlamSystem
 
-    cfg = load_config(preset="paper", overrides=[
-        f"data.path={data}", f"data.max_frames={frames}", f"field.encoding={encoding}", f"field.kernel={kernel}",
-        f"field.decoder_kernel={decoder}", f"loss.kernel={loss}",
-        f"render.name={render}", f"slam.init_iters={init_iters}", "slam.checkpoint_every=0", "mesh.enabled=false",
-        "eval.enabled=false", "output.tensorboard=false", *overrides,
-        *([f"field.mlp.precision={precision}"] if encoding == "mlp" else [])])
+    cfg = paper_config(data, frames, encoding, init_iters, [
+        f"field.kernel={kernel}", f"field.decoder_kernel={decoder}", f"loss.kernel={loss}", f"render.name={render}",
+        *overrides, *([f"field.mlp.precision={precision}"] if encoding == "mlp" else [])])
     system = SlamSystem(cfg, open_dataset(cfg.data))
     t0 = time.perf_counter()
     system.run()

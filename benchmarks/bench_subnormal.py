@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-from iteration_setup import interleaved, machine_line, paper_map
+from iteration_setup import add_map_arguments, interleaved, machine_line, paper_map
 
 
 def replay_kernel(x, w1t, w2, gy, tiny: float, reps: int) -> tuple[float, float]:
@@ -45,10 +45,7 @@ def replay_kernel(x, w1t, w2, gy, tiny: float, reps: int) -> tuple[float, float]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--encoding", default="dense")
-    ap.add_argument("--data", default="builtin:room")
-    ap.add_argument("--frames", type=int, default=8, help="frames run first to build the map")
-    ap.add_argument("--reps", type=int, default=30)
+    add_map_arguments(ap)
     args = ap.parse_args()
     import numpy as np
 

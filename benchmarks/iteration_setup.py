@@ -1,10 +1,12 @@
 """Shared set-up of the per-iteration benchmarks (`bench_iteration.py`, `bench_subnormal.py`,
-`bench_decoder_pair.py`): a `paper` map built over a few frames of a scene, and one tracking and one mapping
-iteration (loss forward + backward, no optimiser step) on rays fixed once, so that code variants can be timed
-interleaved in one process on the same work. Not a benchmark itself."""
+`bench_decoder_pair.py`, `bench_render_kernel.py`): a `paper` map built over a few frames of a scene, and one
+tracking and one mapping iteration (loss forward + backward, no optimiser step) on rays fixed once, so that code
+variants can be timed interleaved in one process on the same work; the benchmark config of a `paper` run
+(`paper_config`, also for `bench_slam.py` and `profile_frame.py`). Not a benchmark itself."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import statistics
@@ -22,21 +24,37 @@ class IterationBench:
     map_iter: Callable[[], None]  # one mapping iteration: the loss's gradient to the map (gradients cleared after)
 
 
+def paper_config(data: str, frames: int, encoding: str, init_iters: int, overrides: Sequence[str] = ()) -> Any:
+    """The `paper` preset on `frames` frames of `data` with F = `encoding` and `init_iters` initialisation iterations,
+    no checkpoints, mesh, evaluation or TensorBoard (benchmarks time the SLAM loop), then `overrides`."""
+    from inrslam.config import load_config
+
+    return load_config(preset="paper", overrides=[
+        f"data.path={data}", f"data.max_frames={frames}", f"field.encoding={encoding}", f"slam.init_iters={init_iters}",
+        "slam.checkpoint_every=0", "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false",
+        *overrides])
+
+
+def add_map_arguments(ap: argparse.ArgumentParser, frames: int = 8, encodings: Sequence[str] | None = None) -> None:
+    """The options every per-iteration benchmark takes: `paper_map`'s --encoding (one of `encodings` if given),
+    --data and --frames (default `frames`), and --reps."""
+    ap.add_argument("--encoding", default="dense", choices=list(encodings) if encodings else None)
+    ap.add_argument("--data", default="builtin:room")
+    ap.add_argument("--frames", type=int, default=frames, help="frames run first to build the map")
+    ap.add_argument("--reps", type=int, default=30)
+
+
 def paper_map(encoding: str, data: str, frames: int, overrides: Sequence[str] = ()) -> IterationBench:
     """`paper` settings plus `overrides`, 100 initialisation iterations, frames 0..frames-1 processed; rays of
     frame `frames` sampled once (seed 0) at the tracking and mapping batch sizes."""
     import torch
 
-    from inrslam.config import load_config
     from inrslam.datasets import open_dataset
     from inrslam.slam.frame_tensors import FrameTensors
     from inrslam.slam.system import SlamSystem
     from inrslam.slam.tracking import frozen
 
-    cfg = load_config(preset="paper", overrides=[
-        f"data.path={data}", f"data.max_frames={frames + 1}", f"field.encoding={encoding}", "slam.init_iters=100",
-        "slam.checkpoint_every=0", "mesh.enabled=false", "eval.enabled=false", "output.tensorboard=false",
-        *overrides])
+    cfg = paper_config(data, frames + 1, encoding, 100, overrides)
     system = SlamSystem(cfg, open_dataset(cfg.data))
     for i in range(frames):
         system.process(i)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from collections import defaultdict
 
-from iteration_setup import machine_line
+from iteration_setup import machine_line, paper_config
 
 FUSED = ["field.decoder_kernel=numba", "loss.kernel=numba", "render.kernel=numba"]
 GROUPS = {  # profiler event name prefix -> group
@@ -51,13 +51,9 @@ def main() -> None:
     from torch.profiler import ProfilerActivity, profile, record_function
 
     import inrslam.slam.system as system_mod
-    from inrslam.config import load_config
     from inrslam.datasets import open_dataset
 
-    cfg = load_config(preset="paper", overrides=[
-        f"data.path={args.data}", f"data.max_frames={args.warmup + args.frames}", f"field.encoding={args.encoding}",
-        f"slam.init_iters={args.init_iters}", "slam.checkpoint_every=0", "mesh.enabled=false", "eval.enabled=false",
-        "output.tensorboard=false", *args.set])
+    cfg = paper_config(args.data, args.warmup + args.frames, args.encoding, args.init_iters, args.set)
     system = system_mod.SlamSystem(cfg, open_dataset(cfg.data))
     for i in range(args.warmup):
         system.process(i)
