@@ -48,6 +48,7 @@ def main() -> None:
     add_map_arguments(ap)
     args = ap.parse_args()
     import numpy as np
+    import torch
 
     import inrslam.fields.kernels.mlp as mlp_mod
     import inrslam.fields.kernels.mlp3 as mlp3_mod
@@ -69,16 +70,20 @@ def main() -> None:
     captured: list[tuple] = []  # the grid decoders' saved inputs and output gradients of one tracking iteration
 
     def count(fn):
-        def backward(ctx, gy):
+        def backward(ctx, *gys):
             if counting[0]:
+                gy = torch.cat([g.to(gys[0].dtype) for g in gys], dim=1)  # the pair's two output gradients as one
                 counts.append((int(((gy.abs() < tiny) & (gy != 0)).sum()), gy.numel()))
-                if fn is grid_backward and len(captured) < 2:
-                    captured.append((*ctx.saved_tensors, gy.detach().contiguous().clone()))
-            return fn(ctx, gy)
+                if fn in grid_backwards and len(captured) < 2:
+                    saved = ctx.saved_tensors
+                    x = torch.cat(saved[:-2], dim=1)  # the pair's [xa, xb], as the single decoder's x
+                    captured.append((x, *saved[-2:], gy.detach().contiguous().clone()))
+            return fn(ctx, *gys)
         return staticmethod(backward)
 
-    grid_backward = mlp_mod.Mlp2Fn.backward
+    grid_backwards = (mlp_mod.Mlp2Fn.backward, mlp_mod.Mlp2SplitFn.backward)
     mlp_mod.Mlp2Fn.backward = count(mlp_mod.Mlp2Fn.backward)  # type: ignore[method-assign]
+    mlp_mod.Mlp2SplitFn.backward = count(mlp_mod.Mlp2SplitFn.backward)  # type: ignore[method-assign]
     mlp3_mod.Mlp3Fn.backward = count(mlp3_mod.Mlp3Fn.backward)  # type: ignore[method-assign]
 
     print(machine_line(f"{args.data}, F={args.encoding}, paper settings + every fused kernel, median of {args.reps}"))

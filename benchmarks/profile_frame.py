@@ -19,6 +19,7 @@ FUSED = ["field.decoder_kernel=numba", "loss.kernel=numba", "render.kernel=numba
 GROUPS = {  # profiler event name prefix -> group
     "MultilinearFnBackward": "lookups, backward", "MultilinearFn": "lookups, forward",
     "Mlp2FnBackward": "grid decoders, backward", "Mlp2Fn": "grid decoders, forward",
+    "Mlp2SplitFnBackward": "grid decoders, backward", "Mlp2SplitFn": "grid decoders, forward",
     "Mlp3FnBackward": "plane decoders, backward", "Mlp3Fn": "plane decoders, forward",
     "CompositeLossFnBackward": "compositing + losses, backward", "CompositeLossFn": "compositing + losses, forward",
     "DensityWeightsFnBackward": "G's weights, backward", "DensityWeightsFn": "G's weights, forward",

@@ -12,6 +12,7 @@ from inrslam.fields.kernels.mlp import (
     BLAS_SINGLE_THREAD_MNK,
     BLOCK,
     Mlp2Fn,
+    Mlp2SplitFn,
     block_rows,
     mlp2,
     mlp2_pair,
@@ -166,7 +167,7 @@ def test_field_decoder_kernel_switch(encoding):
         torch.manual_seed(0)
         field = build_field(FieldConfig(encoding=encoding, decoder_kernel=kernel, log2_hashmap_size=12), bounds)
         out = field(pts)
-        fused = {"Mlp2FnBackward", "Mlp3FnBackward"} & node_names(out.sdf.grad_fn)
+        fused = {"Mlp2FnBackward", "Mlp2SplitFnBackward", "Mlp3FnBackward"} & node_names(out.sdf.grad_fn)
         assert bool(fused) == (kernel == "numba")
         p = pts.clone().requires_grad_()
         out2 = field(p)
@@ -188,22 +189,28 @@ def _pair_inputs(n, n_in=7, ha=32, hb=32, oa=1, ob=3, dtype=torch.float32):
     return x, ws, cots
 
 
-def _pair_grads(backend, x, ws, cots, need):
-    leaves = [t.clone().requires_grad_(r) for t, r in zip((x, *ws), need)]
+def _pair_grads(backend, x, ws, cots, need, split=4):
+    """Outputs and leaf gradients of the two decoders on x, the fused pair taking x as [x[:, :split], x[:, split:]]
+    (two leaves); need: which of (xa, xb, w1a, w2a, w1b, w2b) require a gradient."""
+    leaves = [t.clone().requires_grad_(r) for t, r in zip((x[:, :split], x[:, split:], *ws), need)]
     if backend == "torch":
-        ya, yb = mlp2_torch(leaves[0], *leaves[1:3]), mlp2_torch(leaves[0], *leaves[3:])
+        xc = torch.cat(leaves[:2], dim=1)
+        ya, yb = mlp2_torch(xc, *leaves[2:4]), mlp2_torch(xc, *leaves[4:])
     else:
         ya, yb = mlp2_pair(*leaves, backend=backend)
     torch.autograd.backward([ya, yb], list(cots))
     return (ya.detach(), yb.detach()), [t.grad for t in leaves]
 
 
-@pytest.mark.parametrize("need", [(True,) * 5, (True, False, False, False, False), (False, True, True, True, True)])
+@pytest.mark.parametrize("need", [(True,) * 6, (True, True, False, False, False, False),
+                                  (True, False, True, True, True, True), (False, True, False, False, False, False),
+                                  (False, False, True, True, True, True)])
 @pytest.mark.parametrize("n, ha, hb, oa, ob", [(1, 32, 32, 1, 3), (2 * BLOCK + 37, 32, 32, 1, 3),
                                                (700, 32, 16, 16, 3)])
 def test_pair_matches_two_reference_decoders(n, ha, hb, oa, ob, need):
-    """Two decoders on one input through one fused call: the outputs and every requested gradient of two
-    reference decoders (tracking needs the input's only, mapping the weights' too)."""
+    """Two decoders on one input [xa, xb] through one fused call: the outputs and every requested gradient of two
+    reference decoders on the concatenation (tracking needs the inputs' only, mapping the weights' too, and without
+    bundle adjustment the features' but not the points')."""
     x, ws, cots = _pair_inputs(n, ha=ha, hb=hb, oa=oa, ob=ob)
     outs_r, grads_r = _pair_grads("torch", x, ws, cots, need)
     outs_f, grads_f = _pair_grads("numba", x, ws, cots, need)
@@ -216,10 +223,37 @@ def test_pair_matches_two_reference_decoders(n, ha, hb, oa, ob, need):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4 * max(1.0, float(b.abs().max())))
 
 
+@pytest.mark.parametrize("split", [1, 4, 6])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_split_input_equals_the_kernel_on_the_concatenation(split, dtype):
+    """`Mlp2SplitFn` on [xa, xb] gives `Mlp2Fn`'s values on cat([xa, xb]) bit for bit, split at the output's
+    column: outputs and every gradient (the same products on the same block rows, assembled in cache)."""
+    x, ws, (ca, cb) = _pair_inputs(2 * BLOCK + 37, dtype=dtype)
+    w1, w2 = torch.cat([ws[0], ws[2]]), torch.block_diag(ws[1], ws[3])
+    cat_leaves = [t.clone().requires_grad_() for t in (x, w1, w2)]
+    y = Mlp2Fn.apply(*cat_leaves)
+    y.backward(torch.cat([ca, cb], dim=1))
+    split_leaves = [t.clone().requires_grad_() for t in (x[:, :split], x[:, split:], w1, w2)]
+    ya, yb = Mlp2SplitFn.apply(*split_leaves, 1)
+    torch.autograd.backward([ya, yb], [ca, cb])
+    assert ya.is_contiguous() and yb.is_contiguous()
+    assert torch.equal(ya, y[:, :1]) and torch.equal(yb, y[:, 1:])
+    assert torch.equal(split_leaves[0].grad, cat_leaves[0].grad[:, :split])
+    assert torch.equal(split_leaves[1].grad, cat_leaves[0].grad[:, split:])
+    assert torch.equal(split_leaves[2].grad, cat_leaves[1].grad)
+    assert torch.equal(split_leaves[3].grad, cat_leaves[2].grad)
+
+
 def test_pair_gradcheck_float64():
     x, ws, _ = _pair_inputs(37, ha=8, hb=6, oa=2, ob=3, dtype=torch.float64)
-    leaves = [t.clone().requires_grad_() for t in (x, *ws)]
+    leaves = [t.clone().requires_grad_() for t in (x[:, :3], x[:, 3:], *ws)]
     assert torch.autograd.gradcheck(lambda *a: mlp2_pair(*a, backend="numba"), leaves)
+
+
+def test_pair_rejects_inputs_of_different_lengths():
+    x, ws, _ = _pair_inputs(20)
+    with pytest.raises(ValueError, match="must be"):
+        mlp2_pair(x[:, :4], x[:10, 4:], *ws, backend="numba")
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
@@ -229,13 +263,14 @@ def test_pair_leaves_the_reference_to_the_caller(device):
     for `auto` on GPU tensors; a fused call for `auto` on CPU tensors."""
     x, ws, _ = (t for t in _pair_inputs(20))
     x, ws = x.to(device), [w.to(device) for w in ws]
-    assert mlp2_pair(x, *ws, backend="torch") is None
+    xa, xb = x[:, :4], x[:, 4:]
+    assert mlp2_pair(xa, xb, *ws, backend="torch") is None
     with kernels.second_order():
-        assert mlp2_pair(x, *ws, backend="auto") is None
-    out = mlp2_pair(x.requires_grad_(), *ws, backend="auto")
+        assert mlp2_pair(xa, xb, *ws, backend="auto") is None
+    out = mlp2_pair(xa.requires_grad_(), xb, *ws, backend="auto")
     assert (out is None) == (device != "cpu")
     if out is not None:
-        assert "Mlp2FnBackward" in node_names(out[0].grad_fn)
+        assert "Mlp2SplitFnBackward" in node_names(out[0].grad_fn)
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(

@@ -206,6 +206,28 @@ def test_nan_points_get_nan_features_and_no_gradient(backend, name):
         multilinear(x[:, :2], table, layout, backend)
 
 
+@pytest.mark.parametrize("name", ["dense", "hash"])
+def test_cancelling_infinities_take_the_nan_safe_path_with_the_same_result(name):
+    """+inf and -inf coordinates sum to NaN, so the one-sum NaN test sends the points through the NaN-safe path, which
+    finds no NaN row: features and gradients equal the reference's, where ±inf clamps to the box."""
+    from inrslam.fields.kernels.function import _may_have_nan
+
+    layout, table, x = _case(name)
+    assert not _may_have_nan(x)
+    x[3, 0], x[4, 2] = float("inf"), float("-inf")
+    assert _may_have_nan(x) and not bool(torch.isnan(x).any())
+    cot = torch.randn(x.shape[0], layout.n_entries, table.shape[1])
+    out, gx, gt = _grads("numba", layout, table, x, cot)
+    o_ref, gx_ref, gt_ref = _grads("torch", layout, table, x, cot)
+    assert torch.isfinite(out).all()
+    torch.testing.assert_close(out, o_ref, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(gt, gt_ref, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(gx, gx_ref, rtol=1e-5, atol=1e-4 * gx_ref.abs().max().item())
+    y = torch.zeros(5, 3)
+    y[2, 1] = float("nan")
+    assert _may_have_nan(y)
+
+
 @pytest.mark.parametrize("name", ["dense", "hash", "planes+lines"])
 def test_kernels_called_directly_with_nan_stay_in_bounds(name):
     """The raw numba kernels map a NaN coordinate to the box's low face (a defined row) instead of indexing out of

@@ -157,7 +157,7 @@ def test_which_presets_run_the_fused_decoders_and_losses(preset, fused):
     c2w, dirs, rgb, depth = _rays()
     losses, _ = model.loss(c2w, dirs, rgb, depth, torch.Generator().manual_seed(1))
     names = node_names(losses["total"].grad_fn)
-    assert ("Mlp2FnBackward" in names) == fused and ("CompositeLossFnBackward" in names) == fused
+    assert ("Mlp2SplitFnBackward" in names) == fused and ("CompositeLossFnBackward" in names) == fused
     assert ({"DirectWeightsFnBackward", "DensityWeightsFnBackward"} & set(names) != set()) == fused
     losses["total"].backward()
     assert all(p.grad is not None for p in model.field.parameters())

@@ -170,13 +170,13 @@ class EncoderField(Field):
 
     def _decode_pair(self, feat: torch.Tensor, gam: torch.Tensor) -> FieldOutput | None:
         """coupled_base with the fused decoders: D_s([f, γ]) and D_c([γ, f]) as one `mlp2_pair` call on [f, γ] (the
-        colour decoder's first-layer columns reordered to match); None where the decoders run in autograd."""
+        colour decoder's first-layer columns reordered to match; f and γ are never concatenated); None where the
+        decoders run in autograd."""
         sdf1, sdf2 = cast(nn.Linear, self.sdf_net[0]), cast(nn.Linear, self.sdf_net[2])
         rgb1, rgb2 = cast(nn.Linear, self.rgb_net[0]), cast(nn.Linear, self.rgb_net[2])
         ng = gam.shape[1]
         w1c = torch.cat([rgb1.weight[:, ng:], rgb1.weight[:, :ng]], dim=1)  # columns [γ, f] -> [f, γ]
-        out = mlp2_pair(torch.cat([feat, gam], dim=-1), sdf1.weight, sdf2.weight, w1c, rgb2.weight,
-                        self.decoder_backend)
+        out = mlp2_pair(feat, gam, sdf1.weight, sdf2.weight, w1c, rgb2.weight, self.decoder_backend)
         return None if out is None else FieldOutput(out[0][:, 0], out[1])
 
 

@@ -67,6 +67,35 @@ def relu_mask_inplace(h, gh):  # pragma: no cover - numba
                 gh[k, j] = 0.0
 
 
+@njit(inline="always", cache=True, fastmath=FASTMATH)
+def _block_forward(xb, w1t, w2t):  # pragma: no cover - numba
+    """One block: xb (m, I) C-ordered -> relu(xb w1t) w2t (m, O)."""
+    h = np.dot(xb, w1t)
+    relu_inplace(h)
+    return np.dot(h, w2t)
+
+
+@njit(inline="always", cache=True, fastmath=FASTMATH)
+def _block_backward(xb, gyb, w1t, w1, w2, tiny, need_x, need_w):  # pragma: no cover - numba
+    """One block's gradients of relu(xb w1t) w2^T for the output gradient gyb (m, O), flushed in place (subnormal
+    values count as zero): (gxb (m, I) flushed, or a (0, I) array unless need_x; gw1t (I, H); gw2 (O, H); the last
+    two (0, 0) unless need_w)."""
+    flush_inplace(gyb, tiny)
+    h = np.dot(xb, w1t)  # (m, H) pre-activation
+    gh = np.dot(gyb, w2)  # (m, H) gradient of the activation
+    relu_mask_inplace(h, gh)  # h: the activation, gh: the pre-activation's gradient
+    gxb = np.empty((0, xb.shape[1]), xb.dtype)
+    gw1t = np.empty((0, 0), xb.dtype)
+    gw2 = np.empty((0, 0), xb.dtype)
+    if need_x:
+        gxb = np.dot(gh, w1)
+        flush_inplace(gxb, tiny)
+    if need_w:
+        gw1t = np.dot(np.ascontiguousarray(xb.T), gh)
+        gw2 = np.dot(np.ascontiguousarray(gyb.T), h)
+    return gxb, gw1t, gw2
+
+
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _forward(x, w1t, w2, block, out):  # pragma: no cover - numba
     """x (N, I), w1t (I, H), w2 (O, H) -> out (N, O) = relu(x w1t) w2^T, `block` samples at a time."""
@@ -75,9 +104,24 @@ def _forward(x, w1t, w2, block, out):  # pragma: no cover - numba
     for b in prange((n_pts + block - 1) // block):
         n0 = b * block
         n1 = min(n_pts, n0 + block)
-        h = np.dot(x[n0:n1], w1t)
-        relu_inplace(h)
-        out[n0:n1] = np.dot(h, w2t)
+        out[n0:n1] = _block_forward(x[n0:n1], w1t, w2t)
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def _forward_split(xa, xb, w1t, w2, block, ya, yb):  # pragma: no cover - numba
+    """`_forward` of the input [xa, xb] (N, Ia + Ib) into the output [ya, yb] (N, Oa + Ob), each block's input
+    assembled and its output split in cache (no (N, I) or (N, O) array): the same products, the same values."""
+    n_pts, ia, oa = xa.shape[0], xa.shape[1], ya.shape[1]
+    w2t = np.ascontiguousarray(w2.T)
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
+        x = np.empty((n1 - n0, w1t.shape[0]), w1t.dtype)
+        x[:, :ia] = xa[n0:n1]
+        x[:, ia:] = xb[n0:n1]
+        out = _block_forward(x, w1t, w2t)
+        ya[n0:n1] = out[:, :oa]
+        yb[n0:n1] = out[:, oa:]
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -90,19 +134,39 @@ def _backward(x, w1t, w2, gy, block, need_x, need_w, tiny, gx, gw1t_parts, gw2_p
     for b in prange((n_pts + block - 1) // block):
         n0 = b * block
         n1 = min(n_pts, n0 + block)
-        xb = x[n0:n1]
-        gyb = gy[n0:n1].copy()
-        flush_inplace(gyb, tiny)
-        h = np.dot(xb, w1t)  # (m, H) pre-activation
-        gh = np.dot(gyb, w2)  # (m, H) gradient of the activation
-        relu_mask_inplace(h, gh)  # h: the activation, gh: the pre-activation's gradient
+        gxb, gw1t, gw2 = _block_backward(x[n0:n1], gy[n0:n1].copy(), w1t, w1, w2, tiny, need_x, need_w)
         if need_x:
-            gxb = np.dot(gh, w1)
-            flush_inplace(gxb, tiny)
             gx[n0:n1] = gxb
         if need_w:
-            gw1t_parts[b] = np.dot(np.ascontiguousarray(xb.T), gh)
-            gw2_parts[b] = np.dot(np.ascontiguousarray(gyb.T), h)
+            gw1t_parts[b] = gw1t
+            gw2_parts[b] = gw2
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def _backward_split(xa, xb, w1t, w2, gya, gyb, block, need_xa, need_xb, need_w, tiny, gxa, gxb, gw1t_parts,
+                    gw2_parts):  # pragma: no cover - numba
+    """`_backward` of the input [xa, xb] and the output gradient [gya, gyb], both assembled per block in cache, the
+    input gradient split into gxa (N, Ia) when need_xa and gxb (N, Ib) when need_xb: the same values."""
+    n_pts, ia, oa = xa.shape[0], xa.shape[1], gya.shape[1]
+    w1 = np.ascontiguousarray(w1t.T)
+    need_x = need_xa or need_xb
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
+        x = np.empty((n1 - n0, w1t.shape[0]), w1t.dtype)
+        x[:, :ia] = xa[n0:n1]
+        x[:, ia:] = xb[n0:n1]
+        gy = np.empty((n1 - n0, w2.shape[0]), w2.dtype)
+        gy[:, :oa] = gya[n0:n1]
+        gy[:, oa:] = gyb[n0:n1]
+        gx, gw1t, gw2 = _block_backward(x, gy, w1t, w1, w2, tiny, need_x, need_w)
+        if need_xa:
+            gxa[n0:n1] = gx[:, :ia]
+        if need_xb:
+            gxb[n0:n1] = gx[:, ia:]
+        if need_w:
+            gw1t_parts[b] = gw1t
+            gw2_parts[b] = gw2
 
 
 def blas_fits(*weights) -> bool:
@@ -168,23 +232,70 @@ def mlp2(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, backend: str = "au
     return Mlp2Fn.apply(x, w1, w2)
 
 
-def mlp2_pair(x: torch.Tensor, w1a: torch.Tensor, w2a: torch.Tensor, w1b: torch.Tensor, w2b: torch.Tensor,
-              backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor] | None:
-    """Two decoders on the same input, (relu(x W1a^T) W2a^T, relu(x W1b^T) W2b^T): x (N, I), w1a (Ha, I), w2a
-    (Oa, Ha), w1b (Hb, I), w2b (Ob, Hb) -> (N, Oa), (N, Ob), through one fused kernel call each way: the first
-    layers stacked (Ha + Hb, I) and the second ones block-diagonal (Oa + Ob, Ha + Hb), so the samples are read, and
-    the input gradient written, once for both (and one input concatenation serves both). Same maths as two `mlp2`
-    calls, rounded differently (e.g. the input gradient is one sum over both hidden layers).
+class Mlp2SplitFn(torch.autograd.Function):
+    """``Mlp2Fn`` on the input [xa, xb] with the output split as [ya, yb] (the first `n_a` columns, the rest),
+    without the concatenated (N, I) input, the (N, O) output and their gradients ever existing: each kernel block
+    assembles its rows in cache, so the values equal ``Mlp2Fn``'s on the concatenation bit for bit, and the input
+    gradients come back as two contiguous arrays. Once differentiable, as ``Mlp2Fn``."""
+
+    @staticmethod
+    def forward(ctx, xa: torch.Tensor, xb: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor,
+                n_a: int) -> tuple[torch.Tensor, torch.Tensor]:
+        xac, xbc = xa.detach().contiguous(), xb.detach().contiguous()
+        w1t = w1.detach().t().contiguous()
+        w2c = w2.detach().contiguous()
+        dtype = w1t.numpy().dtype
+        ya = np.empty((xac.shape[0], n_a), dtype=dtype)
+        yb = np.empty((xac.shape[0], w2c.shape[0] - n_a), dtype=dtype)
+        _forward_split(xac.numpy(), xbc.numpy(), w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), ya, yb)
+        ctx.save_for_backward(xac, xbc, w1t, w2c)
+        return torch.from_numpy(ya), torch.from_numpy(yb)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, gya: torch.Tensor, gyb: torch.Tensor):
+        xac, xbc, w1t, w2c = ctx.saved_tensors
+        need_xa, need_xb, need_w1, need_w2 = ctx.needs_input_grad[:4]
+        need_w = need_w1 or need_w2
+        n = xac.shape[0]
+        n_hid, n_out = w1t.shape[1], w2c.shape[0]
+        dtype = w1t.numpy().dtype
+        block = block_rows(w1t, w2c)
+        n_blocks = (n + block - 1) // block if need_w else 0
+        gxa = np.empty((n if need_xa else 0, xac.shape[1]), dtype=dtype)
+        gxb = np.empty((n if need_xb else 0, xbc.shape[1]), dtype=dtype)
+        gw1t = np.zeros((n_blocks, w1t.shape[0], n_hid), dtype=dtype)
+        gw2 = np.zeros((n_blocks, n_out, n_hid), dtype=dtype)
+        gya_np, gyb_np = (g.detach().to(w1t.dtype).contiguous().numpy() for g in (gya, gyb))
+        _backward_split(xac.numpy(), xbc.numpy(), w1t.numpy(), w2c.numpy(), gya_np, gyb_np, block, need_xa, need_xb,
+                        need_w, tiny_of(dtype), gxa, gxb, gw1t, gw2)
+        gw1_t = torch.from_numpy(gw1t.sum(axis=0)).t().contiguous() if need_w1 else None  # as in `Mlp2Fn`
+        gw2_t = torch.from_numpy(gw2.sum(axis=0)) if need_w2 else None
+        return (torch.from_numpy(gxa) if need_xa else None, torch.from_numpy(gxb) if need_xb else None, gw1_t, gw2_t,
+                None)
+
+
+def mlp2_pair(xa: torch.Tensor, xb: torch.Tensor, w1a: torch.Tensor, w2a: torch.Tensor, w1b: torch.Tensor,
+              w2b: torch.Tensor, backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Two decoders on the same input x = [xa, xb], (relu(x W1a^T) W2a^T, relu(x W1b^T) W2b^T): xa (N, Ia), xb (N,
+    Ib), w1a (Ha, Ia + Ib), w2a (Oa, Ha), w1b (Hb, Ia + Ib), w2b (Ob, Hb) -> (N, Oa), (N, Ob), through one fused
+    kernel call each way: the first layers stacked (Ha + Hb, I) and the second ones block-diagonal (Oa + Ob, Ha +
+    Hb), so the samples are read, and the input gradient written, once for both; x is never concatenated
+    (`Mlp2SplitFn`: each block of samples is assembled in cache, and the outputs and input gradients come back as
+    separate contiguous arrays). Same maths as two `mlp2` calls on the concatenation, rounded differently (e.g. the
+    input gradient is one sum over both hidden layers).
     Returns None where `backend` resolves to the reference (the caller runs its decoders as before)."""
-    fusable = cpu_floats(x, w1a, w2a, w1b, w2b) and x.shape[1] == w1a.shape[1] == w1b.shape[1]
+    n_in = xa.shape[1] + xb.shape[1] if xa.dim() == 2 and xb.dim() == 2 else -1
+    if n_in < 0 or xa.shape[0] != xb.shape[0]:
+        raise ValueError(f"mlp2_pair: inputs xa {tuple(xa.shape)} and xb {tuple(xb.shape)} must be (N, Ia) and (N, Ib)")
+    fusable = cpu_floats(xa, xb, w1a, w2a, w1b, w2b) and n_in == w1a.shape[1] == w1b.shape[1]
     if resolve_backend(backend, fusable) == "torch":
         return None
     w1 = torch.cat([w1a, w1b])
     w2 = torch.block_diag(w2a, w2b)
     if not blas_fits(w1.t(), w2):
         return None
-    y = Mlp2Fn.apply(x, w1, w2)
-    return y[:, :w2a.shape[0]], y[:, w2a.shape[0]:]
+    return Mlp2SplitFn.apply(xa, xb, w1, w2, w2a.shape[0])
 
 
 def resolve_backend(backend: str, fusable: bool) -> str:
