@@ -107,19 +107,25 @@ def _forward(x, w1t, w2, block, out):  # pragma: no cover - numba
         out[n0:n1] = _block_forward(x[n0:n1], w1t, w2t)
 
 
+@njit(inline="always", cache=True)
+def _joined(a, b, n0, n1):  # pragma: no cover - numba
+    """Rows n0..n1 of [a, b] (columns of a, then of b) as one C-ordered (n1 - n0, Ia + Ib) block."""
+    out = np.empty((n1 - n0, a.shape[1] + b.shape[1]), a.dtype)
+    out[:, :a.shape[1]] = a[n0:n1]
+    out[:, a.shape[1]:] = b[n0:n1]
+    return out
+
+
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _forward_split(xa, xb, w1t, w2, block, ya, yb):  # pragma: no cover - numba
     """`_forward` of the input [xa, xb] (N, Ia + Ib) into the output [ya, yb] (N, Oa + Ob), each block's input
     assembled and its output split in cache (no (N, I) or (N, O) array): the same products, the same values."""
-    n_pts, ia, oa = xa.shape[0], xa.shape[1], ya.shape[1]
+    n_pts, oa = xa.shape[0], ya.shape[1]
     w2t = np.ascontiguousarray(w2.T)
     for b in prange((n_pts + block - 1) // block):
         n0 = b * block
         n1 = min(n_pts, n0 + block)
-        x = np.empty((n1 - n0, w1t.shape[0]), w1t.dtype)
-        x[:, :ia] = xa[n0:n1]
-        x[:, ia:] = xb[n0:n1]
-        out = _block_forward(x, w1t, w2t)
+        out = _block_forward(_joined(xa, xb, n0, n1), w1t, w2t)
         ya[n0:n1] = out[:, :oa]
         yb[n0:n1] = out[:, oa:]
 
@@ -147,19 +153,14 @@ def _backward_split(xa, xb, w1t, w2, gya, gyb, block, need_xa, need_xb, need_w, 
                     gw2_parts):  # pragma: no cover - numba
     """`_backward` of the input [xa, xb] and the output gradient [gya, gyb], both assembled per block in cache, the
     input gradient split into gxa (N, Ia) when need_xa and gxb (N, Ib) when need_xb: the same values."""
-    n_pts, ia, oa = xa.shape[0], xa.shape[1], gya.shape[1]
+    n_pts, ia = xa.shape[0], xa.shape[1]
     w1 = np.ascontiguousarray(w1t.T)
     need_x = need_xa or need_xb
     for b in prange((n_pts + block - 1) // block):
         n0 = b * block
         n1 = min(n_pts, n0 + block)
-        x = np.empty((n1 - n0, w1t.shape[0]), w1t.dtype)
-        x[:, :ia] = xa[n0:n1]
-        x[:, ia:] = xb[n0:n1]
-        gy = np.empty((n1 - n0, w2.shape[0]), w2.dtype)
-        gy[:, :oa] = gya[n0:n1]
-        gy[:, oa:] = gyb[n0:n1]
-        gx, gw1t, gw2 = _block_backward(x, gy, w1t, w1, w2, tiny, need_x, need_w)
+        gx, gw1t, gw2 = _block_backward(_joined(xa, xb, n0, n1), _joined(gya, gyb, n0, n1), w1t, w1, w2, tiny,
+                                        need_x, need_w)
         if need_xa:
             gxa[n0:n1] = gx[:, :ia]
         if need_xb:
