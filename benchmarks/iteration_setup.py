@@ -22,6 +22,8 @@ class IterationBench:
     model: Any  # the SceneModel after `frames` frames
     track_iter: Callable[[], None]  # one tracking iteration: the loss's gradient to a pose (map frozen)
     map_iter: Callable[[], None]  # one mapping iteration: the loss's gradient to the map (gradients cleared after)
+    map_rays: Any = None  # the mapping iteration's rays (the arguments of `SceneModel.loss` after the pose)
+    map_pose: Any = None  # (4, 4) camera-to-world pose of those rays
 
 
 def paper_config(data: str, frames: int, encoding: str, init_iters: int, overrides: Sequence[str] = ()) -> Any:
@@ -76,7 +78,7 @@ def paper_map(encoding: str, data: str, frames: int, overrides: Sequence[str] = 
         losses["total"].backward()
         model.zero_grad(set_to_none=True)
 
-    return IterationBench(cfg, model, track_iter, map_iter)
+    return IterationBench(cfg, model, track_iter, map_iter, map_rays, c2w)
 
 
 def machine_line(what: str) -> str:

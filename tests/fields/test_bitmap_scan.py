@@ -1,5 +1,6 @@
 """The touched-row bitmap of the accumulator table backward, scanned a uint64 word at a time: `next_marked_byte`,
-the count and the drain against numpy on random sparse bitmaps whose ranges start and end off word boundaries."""
+the count and the drain (in runs of bitmap bytes, in parallel) against numpy on random sparse bitmaps whose ranges
+start and end off word boundaries."""
 
 from __future__ import annotations
 
@@ -7,9 +8,8 @@ import numpy as np
 import pytest
 from numba import njit
 
-from inrslam.fields.kernels.indexing import mark_words, next_marked_byte
+from inrslam.fields.kernels.indexing import count_marked, mark_words, next_marked_byte
 from inrslam.fields.kernels.sparse_rows import drain_marked_rows
-from inrslam.fields.kernels.trilinear import _count_marked
 
 
 @njit(cache=False)
@@ -43,10 +43,12 @@ def test_the_scan_visits_exactly_the_non_zero_bytes_and_counts_their_bits(seed):
         b0, b1 = sorted(int(v) for v in rng.integers(0, n + 1, 2))
         expect = [b for b in range(b0, b1) if mark[b]]
         assert _marked(mark, b0, b1) == expect
-        assert _count_marked(mark, b0, b1) == int(np.unpackbits(mark[b0:b1]).sum())
+        assert count_marked(mark, b0, b1) == int(np.unpackbits(mark[b0:b1]).sum())
 
 
-def test_the_drain_moves_every_marked_row_of_each_entry_in_order_and_clears_them():
+@pytest.mark.parametrize("chunk", [1, 3, 8, 4096])
+def test_the_drain_moves_every_marked_row_of_each_entry_in_order_and_clears_them(chunk):
+    """Any run length: runs of 1 and 3 bytes start and end off the scan's 8-byte words and split entries."""
     rng = np.random.default_rng(7)
     rows = np.array([13, 1, 77, 250], np.int64)  # entries of odd sizes: their bitmaps start mid-word
     row_off = np.concatenate([[0], np.cumsum(rows)[:-1]])
@@ -62,11 +64,42 @@ def test_the_drain_moves_every_marked_row_of_each_entry_in_order_and_clears_them
             acc[row_off[e] + k] = rng.normal(size=2)
             touched.append(int(row_off[e] + k))
     touched.sort()
-    counts = np.array([sum(1 for t in touched if row_off[e] <= t < row_off[e] + rows[e]) for e in range(len(rows))])
     expect_vals = acc[touched].copy()
     rows_dst = np.empty(len(touched), np.int64)
     vals_dst = np.empty((len(touched), 2), np.float32)
-    drain_marked_rows(rows, row_off, mark_off, counts, acc, mark, rows_dst, vals_dst)
+    drain_marked_rows(rows, row_off, mark_off, acc, mark, rows_dst, vals_dst, chunk)
     assert rows_dst.tolist() == touched
+    np.testing.assert_array_equal(vals_dst, expect_vals)
+    assert not mark.any() and not acc.any()
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_drain_of_a_large_sparse_level_is_the_same_on_any_thread_count(threads):
+    """A level of many runs (the fine dense level's case): every marked row, ascending, whatever the threads."""
+    import numba
+
+    rng = np.random.default_rng(3)
+    rows = np.array([40, 300_001], np.int64)
+    row_off = np.array([0, 40], np.int64)
+    nbytes = (rows + 7) // 8
+    mark_off = np.array([0, nbytes[0]], np.int64)
+    mark = np.zeros(int(nbytes.sum()), np.uint8)
+    acc = np.zeros((int(rows.sum()), 3), np.float64)
+    touched = np.unique(rng.integers(0, int(rows.sum()), 20_000))
+    for t in touched:
+        e = int(t >= 40)
+        k = int(t - row_off[e])
+        mark[mark_off[e] + k // 8] |= np.uint8(1 << (k % 8))
+    acc[touched] = rng.normal(size=(len(touched), 3))
+    expect_vals = acc[touched].copy()
+    rows_dst = np.empty(len(touched), np.int64)
+    vals_dst = np.empty((len(touched), 3), np.float64)
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        drain_marked_rows(rows, row_off, mark_off, acc, mark, rows_dst, vals_dst, 512)
+    finally:
+        numba.set_num_threads(before)
+    np.testing.assert_array_equal(rows_dst, touched)
     np.testing.assert_array_equal(vals_dst, expect_vals)
     assert not mark.any() and not acc.any()

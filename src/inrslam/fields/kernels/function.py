@@ -157,7 +157,7 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, 
         trilinear.tri_backward_table_acc(xn, gT, *tri_meta(layout), mark_off, acc, mark, counts)
         return _sparse_grad(layout, shape, g.dtype, counts,
                             lambda rows, vals: sparse_rows.drain_marked_rows(layout.rows, layout.row_off, mark_off,
-                                                                             counts, acc, mark, rows, vals))
+                                                                             acc, mark, rows, vals))
     if layout.trilinear:
         parts = _row_parts(layout)
         cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], F, g.dtype, parts)
@@ -247,6 +247,21 @@ def _table_grad_coo(rows: np.ndarray, vals: np.ndarray, shape, sparse: bool) -> 
     return torch.zeros(shape, dtype=v.dtype).index_add_(0, r, v)
 
 
+def _input_grad(xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, jac: np.ndarray | None,
+                g_np: np.ndarray) -> torch.Tensor:
+    """gx[n,a] = Σ_{e,f} g[n,e,f] ∂out[n,e,f]/∂p̂_a, (N,3) in xn's dtype: the contraction with the Jacobian the
+    trilinear forward kept (summed in float64 and written straight in xn's dtype, the same rounding as one cast of
+    the float64 sum, without an (N,3) float64 array to zero and convert), else the generic kernel's float64 sum."""
+    xn_np = xn.detach().contiguous().numpy()
+    if jac is not None:
+        gx = np.empty((xn.shape[0], 3), xn_np.dtype)
+        trilinear.tri_backward_x_jac(jac, g_np, gx)
+        return torch.from_numpy(gx)
+    gx64 = np.zeros((xn.shape[0], 3), np.float64)
+    generic.interp_backward_x(xn_np, table.detach().numpy(), g_np, *_meta(layout), gx64)
+    return torch.from_numpy(gx64).to(xn.dtype)
+
+
 class InputGradFn(torch.autograd.Function):
     """The input gradient of the lookup as a differentiable function: gx[n,a] = Σ_{e,f} g[n,e,f] ∂out[n,e,f]/∂p̂_a
     (g (N,E,F) the lookup's output gradient, xn (N,3), table (M,F) -> (N,3)), with a fused backward to g, xn and
@@ -257,17 +272,11 @@ class InputGradFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, g: torch.Tensor, xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, jac, sparse: bool
                 ) -> torch.Tensor:
-        g_np = g.detach().contiguous().numpy()
-        gx64 = np.zeros((xn.shape[0], 3), np.float64)
-        if jac is not None:  # trilinear: the forward kept the Jacobian
-            trilinear.tri_backward_x_jac(jac, g_np, gx64)
-        else:
-            generic.interp_backward_x(xn.detach().contiguous().numpy(), table.detach().numpy(), g_np, *_meta(layout),
-                                      gx64)
+        gx = _input_grad(xn, table, layout, jac, g.detach().contiguous().numpy())
         ctx.save_for_backward(g, xn, table)
         ctx.layout = layout
         ctx.sparse = sparse
-        return torch.from_numpy(gx64).to(xn.dtype)
+        return gx
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -337,13 +346,8 @@ class MultilinearFn(torch.autograd.Function):
         g_np = g.contiguous().numpy()
         xn_np = xn.detach().contiguous().numpy()
         gx = gt = None
-        if need_x:
-            gx64 = np.zeros((xn.shape[0], 3), np.float64)
-            if ctx.jac is not None:  # trilinear: the forward kept the Jacobian (it knew the input grad was needed)
-                trilinear.tri_backward_x_jac(ctx.jac, g_np, gx64)
-            else:
-                generic.interp_backward_x(xn_np, table.detach().numpy(), g_np, *_meta(layout), gx64)
-            gx = torch.from_numpy(gx64).to(xn.dtype)
+        if need_x:  # (trilinear: the forward kept the Jacobian, as it knew the input gradient was needed)
+            gx = _input_grad(xn, table, layout, ctx.jac, g_np)
         if need_t:
             gt = table_grad_numba(xn_np, g_np, layout, tuple(table.shape), table.dtype, ctx.sparse, ctx.skip_zero)
         return gx, gt, None, None, None
@@ -382,7 +386,7 @@ def table_grad_jac_numba(xn: np.ndarray, g: np.ndarray, gj: np.ndarray, layout: 
                                              counts)
         return _sparse_grad(layout, shape, g.dtype, counts,
                             lambda rows, vals: sparse_rows.drain_marked_rows(layout.rows, layout.row_off, mark_off,
-                                                                             counts, acc, mark, rows, vals))
+                                                                             acc, mark, rows, vals))
     if layout.trilinear:
         parts = _row_parts(layout)
         cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], shape[1], g.dtype, parts)

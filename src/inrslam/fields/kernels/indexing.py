@@ -59,3 +59,15 @@ def next_marked_byte(mark, words, b, end):
 def mark_words(mark):
     """mark (uint8, contiguous) as uint64 words over its first ⌊len/8⌋·8 bytes, for ``next_marked_byte``."""
     return mark[: mark.shape[0] - mark.shape[0] % 8].view(np.uint64)
+
+
+@njit(inline="always", cache=True)
+def count_marked(mark, b0, b1):
+    """Set bits of the bitmap bytes mark[b0:b1] (zero 8-byte words skipped)."""
+    words = mark_words(mark)
+    c = 0
+    b = next_marked_byte(mark, words, b0, b1)
+    while b < b1:
+        c += BIT_CNT[mark[b]]
+        b = next_marked_byte(mark, words, b + 1, b1)
+    return c

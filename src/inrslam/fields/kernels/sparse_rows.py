@@ -9,7 +9,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from inrslam.fields.kernels.indexing import BIT_CNT, BIT_POS, balanced_entry, mark_words, next_marked_byte
+from inrslam.fields.kernels.indexing import BIT_CNT, BIT_POS, balanced_entry, count_marked, mark_words, next_marked_byte
 from inrslam.fields.kernels.prefetch import prefetch_row_w
 
 
@@ -87,21 +87,52 @@ def compact_entries(cap_off, counts, out_rows, out_vals, rows_dst, vals_dst):
                 vals_dst[d0 + k, f] = out_vals[src + k, f]
 
 
+#: Bitmap bytes per chunk of ``drain_marked_rows`` (8192: 65536 rows; a fine dense level is ~90 chunks).
+DRAIN_CHUNK = 8192
+
+
+@njit(cache=True)
+def _bitmap_chunks(rows, mark_off, chunk):
+    """(C, 3) int64 (entry, first byte, end byte): each entry's bitmap bytes mark_off[e] .. + ceil(rows[e] / 8) cut
+    into runs of at most `chunk` bytes, entries and runs in order."""
+    n = 0
+    for e in range(rows.shape[0]):
+        n += ((rows[e] + 7) // 8 + chunk - 1) // chunk
+    out = np.empty((n, 3), np.int64)
+    k = 0
+    for e in range(rows.shape[0]):
+        end = mark_off[e] + (rows[e] + 7) // 8
+        for b in range(mark_off[e], end, chunk):
+            out[k, 0] = e
+            out[k, 1] = b
+            out[k, 2] = min(end, b + chunk)
+            k += 1
+    return out
+
+
 @njit(parallel=True, cache=True)
-def drain_marked_rows(rows, row_off, mark_off, counts, acc, mark, rows_dst, vals_dst):
-    """Move the marked rows of acc (bitmap layout of ``tri_backward_table_acc``) to rows_dst / vals_dst (length
-    Σ counts, ascending row order) and reset acc and mark to zero there (parallel over entries)."""
-    E = counts.shape[0]
+def drain_marked_rows(rows, row_off, mark_off, acc, mark, rows_dst, vals_dst, chunk=DRAIN_CHUNK):
+    """Move the marked rows of acc (bitmap layout of ``tri_backward_table_acc``) to rows_dst / vals_dst (length:
+    the marked rows, ``tri_backward_table_acc``'s counts summed; ascending row order) and reset acc and mark to zero
+    there. Parallel over runs of `chunk` bitmap bytes (a fine level holds almost every touched row, so one thread per
+    entry would leave the others idle): each run's marked rows are counted first, so every run knows where its rows
+    go; the result depends neither on `chunk` nor on the thread count."""
     F = acc.shape[1]
-    dst = _exclusive_cumsum(counts)
-    for ie in prange(E):
-        e = balanced_entry(ie, E)
-        k = dst[e]
+    runs = _bitmap_chunks(rows, mark_off, chunk)
+    C = runs.shape[0]
+    words = mark_words(mark)
+    dst = np.zeros(C + 1, np.int64)
+    for c in prange(C):
+        dst[c + 1] = count_marked(mark, runs[c, 1], runs[c, 2])
+    for c in range(C):
+        dst[c + 1] += dst[c]
+    for c in prange(C):
+        e = runs[c, 0]
+        k = dst[c]
         base = row_off[e]
         mo = mark_off[e]
-        words = mark_words(mark)
-        end = mo + (rows[e] + 7) // 8
-        b = next_marked_byte(mark, words, mo, end)
+        end = runs[c, 2]
+        b = next_marked_byte(mark, words, runs[c, 1], end)
         while b < end:
             m = mark[b]
             mark[b] = 0

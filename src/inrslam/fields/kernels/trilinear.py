@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from inrslam.fields.kernels.indexing import BIT_CNT, P1, P2, balanced_entry, mark_words, next_marked_byte, vertex_row
+from inrslam.fields.kernels.indexing import P1, P2, balanced_entry, count_marked, vertex_row
 from inrslam.fields.kernels.prefetch import prefetch_row, prefetch_row_w
 
 _u = np.uint64  # an unsigned index: no negative-index wrap-around code (see ``_tri_block``)
@@ -479,7 +479,8 @@ def hess_backward_x(hess, gj, gx):
 
 @njit(parallel=True, cache=True, fastmath=False)
 def tri_backward_x_jac(jac, g, gx):
-    """gx[n,a] = Σ_e Σ_f g[n,e,f] · jac[n,e,f,a]   (gx (N,3) float64, written)."""
+    """gx[n,a] = Σ_e Σ_f g[n,e,f] · jac[n,e,f,a]   (gx (N,3), written; summed in float64, rounded once to gx's
+    dtype)."""
     N = jac.shape[0]
     E = jac.shape[1]
     F = jac.shape[2]
@@ -521,18 +522,6 @@ def level_major(g, out):
                     out[e, n, f] = g[n, e, f]
 
 
-@njit(inline="always", cache=True)
-def _count_marked(mark, b0, b1):
-    """Set bits of the bitmap bytes mark[b0:b1] (zero 8-byte words skipped)."""
-    words = mark_words(mark)
-    c = 0
-    b = next_marked_byte(mark, words, b0, b1)
-    while b < b1:
-        c += BIT_CNT[mark[b]]
-        b = next_marked_byte(mark, words, b + 1, b1)
-    return c
-
-
 @njit(parallel=True, cache=True, fastmath=False)
 def tri_backward_table_acc(xn, gT, res, scale, offset, lo, hi, stride, hashed, rows, row_off, mark_off, acc, mark,
                            counts):
@@ -565,7 +554,7 @@ def tri_backward_table_acc(xn, gT, res, scale, offset, lo, hi, stride, hashed, r
                     for c in range(8):
                         if w[c] != 0.0:
                             acc[_u(R[0, c, j]), f] += w[c] * gv
-        counts[e] = _count_marked(mark, mo, mo + (rows[e] + 7) // 8)
+        counts[e] = count_marked(mark, mo, mo + (rows[e] + 7) // 8)
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -611,4 +600,4 @@ def tri_backward_table_jac_acc(xn, gT, gj, res, scale, offset, lo, hi, stride, h
                     for f in range(F):
                         acc[_u(r), f] += (wt * np.float64(gT[e, _u(n), f]) + Dx * np.float64(gj[n, e, f, 0])
                                           + Dy * np.float64(gj[n, e, f, 1]) + Dz * np.float64(gj[n, e, f, 2]))
-        counts[e] = _count_marked(mark, mo, mo + (rows[e] + 7) // 8)
+        counts[e] = count_marked(mark, mo, mo + (rows[e] + 7) // 8)
