@@ -155,3 +155,27 @@ def test_ate_over_frames_matches_rmse_of_alignment(tmp_path):
     assert math.sqrt((e ** 2).mean()) == pytest.approx(ate(est, gt, "se3")["rmse"])
     assert ate_over_frames(tmp_path / "nothing") is None
 
+
+
+def test_drift_column_averages_over_seeds_and_is_explained_where_missing(tmp_path):
+    """The drift (growth of the unaligned position error, `drift_m_per_100`) is a column in cm per 100 frames: the
+    mean and std over seeds, lower is better, and a run without ground truth names the evaluation's note."""
+    from inrslam.bench.leaderboard import missing_notes
+
+    root = tmp_path / "runs"
+    drifts = [1.2, 1.6, 1.1]
+    for seed, d in enumerate(drifts):
+        write_fake_run(root / f"s7__dense__direct__accurate__s{seed}", "dense", "direct", "s7", seed, preset="accurate",
+                       metrics=M(2.0 + seed / 10, 20.0, 46.0, drift_m_per_100=d / 100), frames=12)
+    nogt = M(1.0, 20.0, 46.0, eval_notes=["trajectory_gt.txt missing: no ATE/RPE"])
+    del nogt["ate_rmse_m"]
+    write_fake_run(root / "s7__hash__direct__accurate__s0", "hash", "direct", "s7", 0, preset="accurate",
+                   metrics=nogt, frames=12)
+    rows = aggregate(collect_runs(root))
+    dense = next(r for r in rows if r.encoding == "dense")
+    assert dense.mean["drift_cm"] == pytest.approx(statistics.mean(drifts))
+    assert dense.std["drift_cm"] == pytest.approx(statistics.stdev(drifts))
+    assert dense.best["drift_cm"] and COLUMN_BY_KEY["drift_cm"].title in to_markdown(rows)
+    notes = dict(missing_notes(rows))
+    assert notes["trajectory_gt.txt missing: no ATE/RPE"] == ("ATE [cm], Drift [cm/100 fr]: "
+                                                                   "SDF(direct) / Sparse (hash) [accurate]")

@@ -78,7 +78,7 @@ def test_missing_cells_say_why(runs):
     assert f"title='GT mesh not given: no Acc/Comp'>–<sup>{k}</sup>" in page  # the cell points at its note
     assert "(Acc [cm], Comp [cm], Comp [%]: SDF(direct) / Dense)" in notes[k - 1]
     md = to_markdown(rows)
-    assert "- –: trajectory_gt.txt missing: no ATE/RPE (ATE [cm]: SDF(direct) / Dense)" in md
+    assert "- –: trajectory_gt.txt missing: no ATE/RPE (ATE [cm], Drift [cm/100 fr]: SDF(direct) / Dense)" in md
     assert COLUMN_BY_KEY["ate_cm"].title in md
 
 

@@ -41,6 +41,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("comp_cm", "Comp [cm]", "comp_m", 100.0),
     Column("comp_pct", "Comp [%]", "comp_ratio", 100.0, higher_better=True),
     Column("ate_cm", "ATE [cm]", "ate_rmse_m", 100.0),
+    Column("drift_cm", "Drift [cm/100 fr]", "drift_m_per_100", 100.0),
     Column("psnr_db", "PSNR [dB]", "psnr_process_db", 1.0, higher_better=True),
     Column("depth_l1_cm", "Depth L1 [cm]", "depth_l1_process_m", 100.0),
     Column("track_ms", "Track [ms]", "track_ms_per_frame", 1.0, decimals=0),
@@ -209,7 +210,8 @@ def aggregate(records: list[RunRecord], columns: tuple[Column, ...] = COLUMNS) -
 
 # words of the evaluation notes (metrics.json `eval_notes`) that explain a missing value of these metrics
 NOTE_WORDS = {"acc_m": ("Acc/Comp", "mesh metrics"), "comp_m": ("Acc/Comp", "mesh metrics"),
-              "comp_ratio": ("Acc/Comp", "mesh metrics"), "ate_rmse_m": ("ATE",)}
+              "comp_ratio": ("Acc/Comp", "mesh metrics"), "ate_rmse_m": ("ATE",),
+              "drift_m_per_100": ("ATE", "drift")}
 
 
 def missing_reason(records: list[RunRecord], col: Column) -> str:
