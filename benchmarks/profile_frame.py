@@ -6,6 +6,7 @@ so read the shares, and time with `bench_slam.py`. Never asserted in tests.
     python benchmarks/profile_frame.py                                  # dense, every fused kernel, frames 6-10
     python benchmarks/profile_frame.py --encoding hash --frames 5
     python benchmarks/profile_frame.py --set field.decoder_kernel=torch loss.kernel=torch render.kernel=torch
+    python benchmarks/profile_frame.py --ops 10                         # and the 10 largest of "other operations"
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ def main() -> None:
                     "the map, which is neither tracking nor mapping)")
     ap.add_argument("--frames", type=int, default=5, help="frames profiled")
     ap.add_argument("--init-iters", type=int, default=100)
+    ap.add_argument("--ops", type=int, default=0, help="also list this many of the largest operations (by self time) "
+                    "in the group 'other operations'")
     ap.add_argument("--set", nargs="*", default=FUSED, metavar="KEY=VALUE",
                     help="config overrides (default: every fused kernel on)")
     args = ap.parse_args()
@@ -76,12 +79,16 @@ def main() -> None:
     # each event's self time, attributed to the #track / #map range that encloses it
     ranges = [(e.time_range.start, e.time_range.end, e.name) for e in prof.events() if e.name in ("#track", "#map")]
     totals: dict[str, dict[str, float]] = {"#track": defaultdict(float), "#map": defaultdict(float)}
+    others: dict[str, dict[str, float]] = {"#track": defaultdict(float), "#map": defaultdict(float)}
     for e in prof.events():
         if e.name in ("#track", "#map"):
             continue
         for start, end, name in ranges:
             if start <= e.time_range.start <= end:
-                totals[name][group_of(e.name)] += e.self_cpu_time_total / 1e3
+                group = group_of(e.name)
+                totals[name][group] += e.self_cpu_time_total / 1e3
+                if group == "other operations":
+                    others[name][e.name] += e.self_cpu_time_total / 1e3
                 break
     print(machine_line(f"{args.data}, F={args.encoding}, paper + {' '.join(args.set) or 'nothing'}; frames "
                        f"{args.warmup}-{args.warmup + args.frames - 1} profiled"))
@@ -90,6 +97,9 @@ def main() -> None:
         print(f"{what}: {calls} call(s), {total / max(calls, 1):.1f} ms of operations per call (profiled)")
         for group, ms in sorted(totals[name].items(), key=lambda kv: -kv[1]):
             print(f"  {group:<32} {ms / max(calls, 1):8.1f} ms per call  {100 * ms / max(total, 1e-9):5.1f} %")
+            if group == "other operations":
+                for op, op_ms in sorted(others[name].items(), key=lambda kv: -kv[1])[:args.ops]:
+                    print(f"    {op[:40]:<40} {op_ms / max(calls, 1):8.1f} ms per call")
 
 
 if __name__ == "__main__":
