@@ -156,7 +156,6 @@ def test_ate_over_frames_matches_rmse_of_alignment(tmp_path):
     assert ate_over_frames(tmp_path / "nothing") is None
 
 
-
 def test_drift_column_averages_over_seeds_and_is_explained_where_missing(tmp_path):
     """The drift (growth of the unaligned position error, `drift_m_per_100`) is a column in cm per 100 frames: the
     mean and std over seeds, lower is better, and a run without ground truth names the evaluation's note."""

@@ -118,7 +118,8 @@ def test_shipped_specs_load_and_use_registered_names():
     from inrslam.rendering import RENDERERS
 
     counts = {"tiny": 4, "builtin_small": 7 * 2 * 3, "room_fxg": 5 * 2, "room_fxg_gt": 5 * 2, "builtin_fxg": 5 * 2 * 2,
-              "7scenes_fxg": 5 * 2, "7scenes_accurate_seeds": 10, "replica": 5 * 3 * 8, "neuralrgbd": 6 * 3 * 7, "presets_builtin": 2 * 1 * 4 * 3}
+              "7scenes_fxg": 5 * 2, "7scenes_accurate_seeds": 10, "replica": 5 * 3 * 8, "neuralrgbd": 6 * 3 * 7,
+              "presets_builtin": 2 * 1 * 4 * 3}
     assert sorted(p.stem for p in SPEC_DIR.glob("*.yaml")) == sorted(counts)
     for name, n in counts.items():
         spec = load_spec(name)
