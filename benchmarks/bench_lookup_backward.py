@@ -6,12 +6,12 @@ kernel. Never asserted in tests.
     python benchmarks/bench_lookup_backward.py                  # dense, builtin:room
     python benchmarks/bench_lookup_backward.py --encoding hash
 
-"Before": the accumulator's touched rows drained one level per thread (`drain_marked_rows` with one run per level:
-a fine dense level holds almost every touched row, so one thread did nearly all of it; the run-count pass this
-variant adds is the only difference to the old kernel) and the gradient to the points summed into a zeroed (N, 3)
-float64 array, then cast to float32. "After": the drain in runs of `sparse_rows.DRAIN_CHUNK` bitmap bytes over
-every thread, and the points' gradient written in float32 straight from the float64 sums (`function._input_grad`).
-Both give the same bits. See docs/speed.md, "The lookups' backward".
+"Before": the accumulator's touched rows counted and drained one level per thread (`marked_runs` with one run per
+level: a fine dense level holds almost every touched row, so one thread did nearly all of it, as the old kernels,
+which counted each level at the end of the accumulate kernel) and the gradient to the points summed into a zeroed
+(N, 3) float64 array, then cast to float32. "After": counted and drained in runs of `sparse_rows.DRAIN_CHUNK` bitmap
+bytes over every thread, and the points' gradient written in float32 straight from the float64 sums
+(`function._input_grad`). Both give the same bits. See docs/speed.md, "The lookups' backward".
 """
 
 from __future__ import annotations
@@ -34,10 +34,10 @@ def main() -> None:
 
     bench = paper_map(args.encoding, args.data, args.frames, ["field.decoder_kernel=numba", "loss.kernel=numba",
                                                               "render.kernel=numba"])
-    drain, input_grad = sparse_rows.drain_marked_rows, function._input_grad
+    runs, input_grad = sparse_rows.marked_runs, function._input_grad
 
-    def drain_per_level(rows, row_off, mark_off, acc, mark, rows_dst, vals_dst):
-        drain(rows, row_off, mark_off, acc, mark, rows_dst, vals_dst, 1 << 62)
+    def runs_per_level(rows, mark_off, mark):
+        return runs(rows, mark_off, mark, 1 << 62)
 
     def input_grad_float64(xn, table, layout, jac, g_np):
         if jac is None:
@@ -46,9 +46,9 @@ def main() -> None:
         function.trilinear.tri_backward_x_jac(jac, g_np, gx64)
         return torch.from_numpy(gx64).to(xn.dtype)
 
-    def use(d, ig) -> Callable[[], None]:
+    def use(r, ig) -> Callable[[], None]:
         def setter() -> None:
-            sparse_rows.drain_marked_rows = d
+            sparse_rows.marked_runs = r
             function._input_grad = ig
         return setter
 
@@ -60,14 +60,14 @@ def main() -> None:
         losses["total"].backward()
         model.zero_grad(set_to_none=True)
 
-    variants = {"before": use(drain_per_level, input_grad_float64), "after": use(drain, input_grad)}
+    variants = {"before": use(runs_per_level, input_grad_float64), "after": use(runs, input_grad)}
     print(machine_line(f"{args.data}, F={args.encoding}, paper settings + every fused kernel, median of {args.reps}"))
     for name, step in (("tracking", bench.track_iter), (f"mapping ({bench.cfg.slam.map_pixels} rays)", bench.map_iter),
                        ("mapping, pose optimised too", map_ba_iter)):
         ms = interleaved(step, variants, args.reps)
         print(f"{name} iteration: before {ms['before']:7.2f} ms, after {ms['after']:7.2f} ms: "
               f"{ms['before'] / ms['after']:4.2f}x", flush=True)
-    use(drain, input_grad)()
+    use(runs, input_grad)()
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """The touched-row bitmap of the accumulator table backward, scanned a uint64 word at a time: `next_marked_byte`,
-the count and the drain (in runs of bitmap bytes, in parallel) against numpy on random sparse bitmaps whose ranges
-start and end off word boundaries."""
+the count and the drain (in runs of bitmap bytes, counted and drained in parallel) against numpy on random sparse
+bitmaps whose ranges start and end off word boundaries."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from numba import njit
 
 from inrslam.fields.kernels.indexing import count_marked, mark_words, next_marked_byte
-from inrslam.fields.kernels.sparse_rows import drain_marked_rows
+from inrslam.fields.kernels.sparse_rows import drain_marked_rows, marked_runs
 
 
 @njit(cache=False)
@@ -67,7 +67,9 @@ def test_the_drain_moves_every_marked_row_of_each_entry_in_order_and_clears_them
     expect_vals = acc[touched].copy()
     rows_dst = np.empty(len(touched), np.int64)
     vals_dst = np.empty((len(touched), 2), np.float32)
-    drain_marked_rows(rows, row_off, mark_off, acc, mark, rows_dst, vals_dst, chunk)
+    runs, dst = marked_runs(rows, mark_off, mark, chunk)
+    assert dst[-1] == len(touched) and np.all(np.diff(dst) >= 0)
+    drain_marked_rows(row_off, mark_off, acc, mark, runs, dst, rows_dst, vals_dst)
     assert rows_dst.tolist() == touched
     np.testing.assert_array_equal(vals_dst, expect_vals)
     assert not mark.any() and not acc.any()
@@ -97,7 +99,8 @@ def test_the_drain_of_a_large_sparse_level_is_the_same_on_any_thread_count(threa
     before = numba.get_num_threads()
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     try:
-        drain_marked_rows(rows, row_off, mark_off, acc, mark, rows_dst, vals_dst, 512)
+        runs, dst = marked_runs(rows, mark_off, mark, 512)
+        drain_marked_rows(row_off, mark_off, acc, mark, runs, dst, rows_dst, vals_dst)
     finally:
         numba.set_num_threads(before)
     np.testing.assert_array_equal(rows_dst, touched)

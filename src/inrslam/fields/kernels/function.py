@@ -95,10 +95,9 @@ def tri_meta(layout: TableLayout) -> _LayoutArrays:
             layout.rows, layout.row_off)
 
 
-def _sparse_grad(layout: TableLayout, shape, dtype, counts: np.ndarray, fill) -> torch.Tensor:
-    """Sparse COO (M,F) table gradient of Σ counts unique rows, written into (rows, vals) by ``fill(rows, vals)``.
+def _sparse_grad(layout: TableLayout, shape, dtype, nnz: int, fill) -> torch.Tensor:
+    """Sparse COO (M,F) table gradient of nnz unique rows, written into (rows, vals) by ``fill(rows, vals)``.
     Both arrays come from the workspace's ``BufferPool``: a steady stream of backward passes reuses the same memory."""
-    nnz = int(counts.sum())
     if nnz == 0:  # torch-owned empty arrays: a later accumulation may resize them in place
         return torch.sparse_coo_tensor(torch.empty((1, 0), dtype=torch.int64),
                                        torch.from_numpy(np.empty((0, shape[1]), dtype)).clone(), shape,
@@ -111,6 +110,16 @@ def _sparse_grad(layout: TableLayout, shape, dtype, counts: np.ndarray, fill) ->
     layout.workspace.last_grad = (weakref.ref(rows), weakref.ref(vals))
     return torch.sparse_coo_tensor(torch.from_numpy(rows)[None], torch.from_numpy(vals), shape,
                                    check_invariants=False)
+
+
+def _drained_grad(layout: TableLayout, shape, dtype, acc: np.ndarray, mark_off: np.ndarray,
+                  mark: np.ndarray) -> torch.Tensor:
+    """The accumulator's marked rows as the sparse gradient (``_sparse_grad``): counted once, in parallel runs of the
+    bitmap (``sparse_rows.marked_runs``), then drained run by run; acc and mark are left all zero."""
+    runs, dst = sparse_rows.marked_runs(layout.rows, mark_off, mark)
+    return _sparse_grad(layout, shape, dtype, int(dst[-1]),
+                        lambda rows, vals: sparse_rows.drain_marked_rows(layout.row_off, mark_off, acc, mark, runs,
+                                                                         dst, rows, vals))
 
 
 def unique_rows_of(layout: TableLayout, rows: torch.Tensor, values: torch.Tensor) -> bool:
@@ -153,11 +162,8 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, 
     if layout.trilinear and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
         acc, mark_off, mark = _accumulator(layout, F, g.dtype)
         gT = _level_major(g, layout)  # (E,N,F): each level reads its gradient contiguously
-        counts = np.zeros(layout.n_entries, np.int64)
-        trilinear.tri_backward_table_acc(xn, gT, *tri_meta(layout), mark_off, acc, mark, counts)
-        return _sparse_grad(layout, shape, g.dtype, counts,
-                            lambda rows, vals: sparse_rows.drain_marked_rows(layout.rows, layout.row_off, mark_off,
-                                                                             acc, mark, rows, vals))
+        trilinear.tri_backward_table_acc(xn, gT, *tri_meta(layout), mark_off, acc, mark)
+        return _drained_grad(layout, shape, g.dtype, acc, mark_off, mark)
     if layout.trilinear:
         parts = _row_parts(layout)
         cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], F, g.dtype, parts)
@@ -169,7 +175,7 @@ def table_grad_numba(xn: np.ndarray, g: np.ndarray, layout: TableLayout, shape, 
         counts = np.zeros(layout.n_entries, np.int64)
         generic.interp_backward_table_sparse(xn, g, *_meta(layout), row_slots(layout), cap_off, out_rows, out_vals,
                                              counts)
-    return _sparse_grad(layout, shape, g.dtype, counts,
+    return _sparse_grad(layout, shape, g.dtype, int(counts.sum()),
                         lambda rows, vals: sparse_rows.compact_entries(cap_off, counts, out_rows, out_vals, rows, vals))
 
 
@@ -381,12 +387,8 @@ def table_grad_jac_numba(xn: np.ndarray, g: np.ndarray, gj: np.ndarray, layout: 
     M, F = shape
     if layout.trilinear and M * F * g.itemsize <= ACCUMULATOR_MAX_BYTES:
         acc, mark_off, mark = _accumulator(layout, F, g.dtype)
-        counts = np.zeros(layout.n_entries, np.int64)
-        trilinear.tri_backward_table_jac_acc(xn, _level_major(g, layout), gj, *tri_meta(layout), mark_off, acc, mark,
-                                             counts)
-        return _sparse_grad(layout, shape, g.dtype, counts,
-                            lambda rows, vals: sparse_rows.drain_marked_rows(layout.rows, layout.row_off, mark_off,
-                                                                             acc, mark, rows, vals))
+        trilinear.tri_backward_table_jac_acc(xn, _level_major(g, layout), gj, *tri_meta(layout), mark_off, acc, mark)
+        return _drained_grad(layout, shape, g.dtype, acc, mark_off, mark)
     if layout.trilinear:
         parts = _row_parts(layout)
         cap_off, out_rows, out_vals = _sparse_out(layout, xn.shape[0], shape[1], g.dtype, parts)
@@ -398,7 +400,7 @@ def table_grad_jac_numba(xn: np.ndarray, g: np.ndarray, gj: np.ndarray, layout: 
         counts = np.zeros(layout.n_entries, np.int64)
         generic.interp_backward_table_jac_sparse(xn, g, gj, *_meta(layout), row_slots(layout), cap_off, out_rows,
                                                  out_vals, counts)
-    return _sparse_grad(layout, shape, g.dtype, counts,
+    return _sparse_grad(layout, shape, g.dtype, int(counts.sum()),
                         lambda rows, vals: sparse_rows.compact_entries(cap_off, counts, out_rows, out_vals, rows, vals))
 
 

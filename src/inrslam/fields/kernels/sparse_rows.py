@@ -111,21 +111,30 @@ def _bitmap_chunks(rows, mark_off, chunk):
 
 
 @njit(parallel=True, cache=True)
-def drain_marked_rows(rows, row_off, mark_off, acc, mark, rows_dst, vals_dst, chunk=DRAIN_CHUNK):
-    """Move the marked rows of acc (bitmap layout of ``tri_backward_table_acc``) to rows_dst / vals_dst (length:
-    the marked rows, ``tri_backward_table_acc``'s counts summed; ascending row order) and reset acc and mark to zero
-    there. Parallel over runs of `chunk` bitmap bytes (a fine level holds almost every touched row, so one thread per
-    entry would leave the others idle): each run's marked rows are counted first, so every run knows where its rows
-    go; the result depends neither on `chunk` nor on the thread count."""
-    F = acc.shape[1]
+def marked_runs(rows, mark_off, mark, chunk=DRAIN_CHUNK):
+    """The accumulator's bitmap (layout of ``tri_backward_table_acc``) as runs of at most `chunk` bytes
+    (``_bitmap_chunks``) with their marked rows counted in parallel: (runs (C, 3) int64, dst (C + 1,) int64), dst[c]
+    the first output slot of run c and dst[C] the number of marked rows (the sparse gradient's length)."""
     runs = _bitmap_chunks(rows, mark_off, chunk)
     C = runs.shape[0]
-    words = mark_words(mark)
     dst = np.zeros(C + 1, np.int64)
     for c in prange(C):
         dst[c + 1] = count_marked(mark, runs[c, 1], runs[c, 2])
     for c in range(C):
         dst[c + 1] += dst[c]
+    return runs, dst
+
+
+@njit(parallel=True, cache=True)
+def drain_marked_rows(row_off, mark_off, acc, mark, runs, dst, rows_dst, vals_dst):
+    """Move the marked rows of acc (bitmap layout of ``tri_backward_table_acc``) to rows_dst / vals_dst (length
+    dst[-1]; ascending row order) and reset acc and mark to zero there, in parallel over the runs of
+    ``marked_runs`` (a fine level holds almost every touched row, so one thread per entry would leave the others
+    idle), each run into its own slots from dst: the result depends neither on the run length nor on the thread
+    count."""
+    F = acc.shape[1]
+    C = runs.shape[0]
+    words = mark_words(mark)
     for c in prange(C):
         e = runs[c, 0]
         k = dst[c]

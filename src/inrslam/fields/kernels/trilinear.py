@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from inrslam.fields.kernels.indexing import P1, P2, balanced_entry, count_marked, vertex_row
+from inrslam.fields.kernels.indexing import P1, P2, balanced_entry, vertex_row
 from inrslam.fields.kernels.prefetch import prefetch_row, prefetch_row_w
 
 _u = np.uint64  # an unsigned index: no negative-index wrap-around code (see ``_tri_block``)
@@ -523,13 +523,12 @@ def level_major(g, out):
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def tri_backward_table_acc(xn, gT, res, scale, offset, lo, hi, stride, hashed, rows, row_off, mark_off, acc, mark,
-                           counts):
+def tri_backward_table_acc(xn, gT, res, scale, offset, lo, hi, stride, hashed, rows, row_off, mark_off, acc, mark):
     """acc[r_c] += w_c gT[e,n] and set the touched bit of r_c for every non-zero-weight corner (parallel over levels,
     points serially in order). gT (E,N,F) is the output gradient level-major, so that a level reads it
     contiguously. acc (M,F) all zero on entry; mark: one bit per row, level e's rows at bytes
     mark_off[e] + (r − row_off[e]) // 8 (bit (r − row_off[e]) % 8; levels never share a byte), all zero on entry
-    (a bitmap is 1/64 of an (M,2) float32 table, so it stays in cache); counts[e] = touched rows of level e."""
+    (a bitmap is 1/64 of an (M,2) float32 table, so it stays in cache; ``sparse_rows.marked_runs`` counts it)."""
     N = xn.shape[0]
     E = res.shape[0]
     F = acc.shape[1]
@@ -554,16 +553,15 @@ def tri_backward_table_acc(xn, gT, res, scale, offset, lo, hi, stride, hashed, r
                     for c in range(8):
                         if w[c] != 0.0:
                             acc[_u(R[0, c, j]), f] += w[c] * gv
-        counts[e] = count_marked(mark, mo, mo + (rows[e] + 7) // 8)
 
 
 @njit(parallel=True, cache=True, fastmath=False)
 def tri_backward_table_jac_acc(xn, gT, gj, res, scale, offset, lo, hi, stride, hashed, rows, row_off, mark_off, acc,
-                               mark, counts):
+                               mark):
     """``tri_backward_table_acc`` for the table gradient of a lookup that also output its Jacobian (second-order
     backward of ``function.MultilinearJacFn``): acc[r_c] += w_c gT[e,n] + Σ_a ∂w_c/∂p̂_a gj[n,e,:,a] (∂w_c/∂p̂_x =
     du_x/dp̂ s_x t_y t_z, s = ±1 the corner's side, t its per-axis weights, and likewise); a corner is touched (its bit
-    set) when its weight or a derivative weight is non-zero. Same scratch, bitmap and counts."""
+    set) when its weight or a derivative weight is non-zero. Same scratch and bitmap."""
     N = xn.shape[0]
     E = res.shape[0]
     F = acc.shape[1]
@@ -600,4 +598,3 @@ def tri_backward_table_jac_acc(xn, gT, gj, res, scale, offset, lo, hi, stride, h
                     for f in range(F):
                         acc[_u(r), f] += (wt * np.float64(gT[e, _u(n), f]) + Dx * np.float64(gj[n, e, f, 0])
                                           + Dy * np.float64(gj[n, e, f, 1]) + Dz * np.float64(gj[n, e, f, 2]))
-        counts[e] = count_marked(mark, mo, mo + (rows[e] + 7) // 8)
