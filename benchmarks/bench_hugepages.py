@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 import mmap
 
-from iteration_setup import add_map_arguments, interleaved, machine_line, paper_map
+from iteration_setup import FUSED, add_map_arguments, interleaved, machine_line, paper_map
 
 HUGE = 2 << 20  # bytes in a huge page (x86-64)
 
@@ -30,8 +30,7 @@ def main() -> None:
     import numpy as np
     import torch
 
-    bench = paper_map(args.encoding, args.data, args.frames, ["field.decoder_kernel=numba", "loss.kernel=numba",
-                                                              "render.kernel=numba"])
+    bench = paper_map(args.encoding, args.data, args.frames, FUSED)
     big = [p for p in bench.model.parameters() if p.numel() * p.element_size() > 4 << 20]
     maps = []  # the mappings must outlive the tensors viewing them
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-from iteration_setup import add_map_arguments, interleaved, machine_line, paper_map
+from iteration_setup import FUSED, add_map_arguments, interleaved, machine_line, paper_map
 
 
 def main() -> None:
@@ -32,8 +32,7 @@ def main() -> None:
     import inrslam.fields.kernels.function as function
     import inrslam.fields.kernels.sparse_rows as sparse_rows
 
-    bench = paper_map(args.encoding, args.data, args.frames, ["field.decoder_kernel=numba", "loss.kernel=numba",
-                                                              "render.kernel=numba"])
+    bench = paper_map(args.encoding, args.data, args.frames, FUSED)
     runs, input_grad = sparse_rows.marked_runs, function._input_grad
 
     def runs_per_level(rows, mark_off, mark):

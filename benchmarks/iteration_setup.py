@@ -15,6 +15,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+#: Overrides that turn on every fused CPU kernel besides the lookups (which `paper` runs fused already).
+FUSED = ["field.decoder_kernel=numba", "loss.kernel=numba", "render.kernel=numba"]
+
 
 @dataclass
 class IterationBench:

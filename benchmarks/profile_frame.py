@@ -14,9 +14,8 @@ from __future__ import annotations
 import argparse
 from collections import defaultdict
 
-from iteration_setup import machine_line, paper_config
+from iteration_setup import FUSED, machine_line, paper_config
 
-FUSED = ["field.decoder_kernel=numba", "loss.kernel=numba", "render.kernel=numba"]
 GROUPS = {  # profiler event name prefix -> group
     "MultilinearFnBackward": "lookups, backward", "MultilinearFn": "lookups, forward",
     "Mlp2FnBackward": "grid decoders, backward", "Mlp2Fn": "grid decoders, forward",
