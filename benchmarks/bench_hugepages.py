@@ -8,8 +8,9 @@ every fused kernel. Never asserted in tests; Linux only.
 The lookups gather 8 corners per point and level from tables of up to 45 MB, scattered over about 11,000 4 KB
 pages: if address translation (TLB misses) were part of their cost, tables in 2 MB pages would shorten them. Each
 parameter above 4 MB is copied into an anonymous mapping advised `MADV_HUGEPAGE` (aligned to 2 MB) and swapped in
-as the parameter's storage; the values are the same, so are the results. Prints the kernel's AnonHugePages after
-the copy (0 means the kernel gave no huge pages: `/sys/kernel/mm/transparent_hugepage/enabled` set to `never`).
+as the parameter's storage; the values are the same, so are the results. Prints the system's AnonHugePages (all
+processes) after the copy: if it is below the tables' size, the kernel gave them few or no huge pages
+(`/sys/kernel/mm/transparent_hugepage/enabled` set to `never`, or memory too fragmented).
 See docs/speed.md, "The lookups' backward".
 """
 
