@@ -117,12 +117,10 @@ def marked_runs(rows, mark_off, mark, chunk=DRAIN_CHUNK):
     the first output slot of run c and dst[C] the number of marked rows (the sparse gradient's length)."""
     runs = _bitmap_chunks(rows, mark_off, chunk)
     C = runs.shape[0]
-    dst = np.zeros(C + 1, np.int64)
+    counts = np.empty(C, np.int64)
     for c in prange(C):
-        dst[c + 1] = count_marked(mark, runs[c, 1], runs[c, 2])
-    for c in range(C):
-        dst[c + 1] += dst[c]
-    return runs, dst
+        counts[c] = count_marked(mark, runs[c, 1], runs[c, 2])
+    return runs, _exclusive_cumsum(counts)
 
 
 @njit(parallel=True, cache=True)
