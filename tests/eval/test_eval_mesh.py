@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from inrslam.eval.mesh import cull_mesh, icp_point_to_point, mesh_metrics, render_mesh_depth, visibility_counts
@@ -136,3 +137,16 @@ def test_icp_recovers_small_offset(make_box):
     assert m_on["acc_m"] == pytest.approx(m_self["acc_m"], abs=1e-5)
     assert m_on["comp_m"] == pytest.approx(m_self["comp_m"], abs=1e-5)
     assert m_off["acc_m"] > m_self["acc_m"] + 0.005
+
+
+def test_icp_reports_the_fit_of_the_transform_it_returns():
+    rng = np.random.default_rng(3)
+    dst = rng.uniform(-1, 1, (2000, 3))
+    src = dst + [0.03, 0.0, 0.0]  # 3 cm off: one step does not close it (nearest neighbours are not the true pairs)
+    for iters in (1, 2):
+        T, info = icp_point_to_point(src, dst, max_corr=0.1, max_iter=iters)
+        d, _ = cKDTree(dst).query(src @ T[:3, :3].T + T[:3, 3], distance_upper_bound=0.1)
+        ok = np.isfinite(d)
+        assert info["iterations"] == iters
+        assert info["fitness"] == ok.mean() and info["inlier_rmse"] == pytest.approx(np.sqrt(np.mean(d[ok] ** 2)))
+    assert icp_point_to_point(src, dst, max_corr=0.1, max_iter=1)[1]["inlier_rmse"] < 0.03  # better than the start

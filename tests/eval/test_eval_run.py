@@ -10,6 +10,7 @@ import trimesh
 from rich.console import Console
 from scipy.spatial.transform import Rotation
 
+from inrslam.errors import DataError
 from inrslam.eval import EvalConfig, eval_mesh_files, eval_trajectory_files, evaluate_run, format_table
 from inrslam.eval.run import RESULT_KEYS
 from inrslam.eval.trajectory import ate
@@ -187,3 +188,48 @@ def test_virtual_cameras_and_gt_culling(tmp_path, make_plane, make_box, intr):
                                 virtual_cameras=tmp_path / "virt.txt", **base)
     assert with_virt["mesh_eval"]["cameras_used"] == culled["mesh_eval"]["cameras_used"] + 1
     assert with_virt["comp_ratio"] < culled["comp_ratio"]
+
+
+def test_a_ground_truth_mesh_no_camera_sees_gives_null_mesh_metrics_and_a_note(run_dir, make_plane, tmp_path):
+    rd, *_ = run_dir
+    make_plane(1.0, 20, z=-2.0).export(tmp_path / "gt_wall.ply")  # the GT wall behind every camera
+    out = evaluate_run(rd, EvalConfig(n_samples=20_000, cull_gt=True))
+    assert out["acc_m"] is None and out["comp_m"] is None and out["comp_ratio"] is None
+    assert out["ate_rmse_m"] is not None  # the trajectory metrics are still written
+    assert any("ground-truth mesh has no triangles seen by the cameras" in n for n in out["eval_notes"])
+    assert json.loads((rd / "metrics.json").read_text())["ate_rmse_m"] == out["ate_rmse_m"]
+
+
+def test_mesh_files_without_triangles_are_a_one_line_error(tmp_path, make_plane, intr):
+    make_plane(1.0, 10, z=2.0).export(tmp_path / "wall.ply")
+    trimesh.PointCloud(np.random.default_rng(0).uniform(-1, 1, (50, 3))).export(tmp_path / "points.ply")
+    with pytest.raises(DataError, match=r"points\.ply: no triangles with area \(a point cloud\?\)"):
+        eval_mesh_files(tmp_path / "wall.ply", tmp_path / "points.ply", n_samples=1000)
+    write_tum(tmp_path / "cams.txt", np.arange(N) * 0.1, _gt_poses())
+    make_plane(1.0, 10, z=-2.0).export(tmp_path / "behind.ply")
+    with pytest.raises(DataError, match="ground-truth mesh has no triangles seen by the cameras"):
+        eval_mesh_files(tmp_path / "wall.ply", tmp_path / "behind.ply", tmp_path / "cams.txt", intr, cull_gt=True,
+                        n_samples=1000)
+
+
+def test_sim3_alignment_of_an_estimate_that_never_moves(run_dir, tmp_path):
+    rd, est, gt, has_gt = run_dir
+    still = np.tile(np.eye(4), (N, 1, 1))
+    ts = np.arange(N) * 0.1
+    write_tum(tmp_path / "still.txt", ts, still)
+    write_tum(tmp_path / "gt.txt", ts, gt)
+    with pytest.raises(DataError, match="Sim\\(3\\) alignment: the estimated camera positions never move"):
+        eval_trajectory_files(tmp_path / "still.txt", tmp_path / "gt.txt", align="sim3")
+    se3 = eval_trajectory_files(tmp_path / "still.txt", tmp_path / "gt.txt", align="se3")
+    assert se3["ate_rmse_m"] == pytest.approx(ate(still, gt)["rmse"], abs=1e-6)
+    write_tum(rd / "trajectory.txt", ts, still)  # a run whose tracking never moved: null keys and a note
+    out = evaluate_run(rd, EvalConfig(n_samples=20_000, align="sim3"))
+    assert out["ate_rmse_m"] is None and out["rpe_trans_m"] is None and out["acc_m"] is not None
+    assert any(n.startswith("no ATE/RPE: Sim(3) alignment") for n in out["eval_notes"])
+
+
+def test_a_metrics_file_that_is_not_utf8_is_a_one_line_error(run_dir):
+    rd, *_ = run_dir
+    (rd / "metrics.json").write_bytes(b'{"frames": 1, \xff}')
+    with pytest.raises(DataError, match=r"metrics\.json: invalid JSON"):
+        evaluate_run(rd, FAST)

@@ -109,6 +109,25 @@ def test_interrupted_accurate_run_resumes_to_the_uninterrupted_result(all_on, tm
     assert strip(tracks(out)) == strip(tracks(all_on))
 
 
+def test_resume_after_bundle_adjustment_moved_local_map_keyframes(tmp_path):
+    # mapping (with bundle adjustment) on frames 3 and 6, GICP keyframes 0, 3, 5: bundle adjustment on frame 6 moves
+    # keyframe 3 of the local map that frame 7 registers onto; a run resumed from the checkpoint of frame 6 builds that
+    # map at the moved poses, so the uninterrupted run must too
+    extra = SMALL + ALL_ON + ["slam.map_every=3", "slam.checkpoint_every=1", "slam.gicp.kf_dist=0.02"]
+    full, out = tmp_path / "full", tmp_path / "interrupted"
+    run_slam(load_config(preset="accurate", overrides=extra), full)
+    assert [r["gicp_target"] for r in tracks(full)][-2:] == [5, 5]  # frame 7 keeps frame 6's local map
+
+    def stop_at_frame_7(i, n, info):
+        if i == 7:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(load_config(preset="accurate", overrides=extra), out, progress=stop_at_frame_7)
+    resume_slam(out)
+    assert (out / "trajectory.txt").read_text() == (full / "trajectory.txt").read_text()
+
+
 def test_local_map_target_registers_onto_merged_keyframes(tmp_path_factory):
     out = run(tmp_path_factory, "local_map", "accurate", ["slam.gicp.target=local_map", "slam.gicp.kf_dist=0.01"])
     recs = tracks(out)

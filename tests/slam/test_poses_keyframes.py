@@ -77,6 +77,23 @@ def test_keyframe_store_sampling_and_state_roundtrip():
     assert all(torch.equal(x, y) for x, y in zip(a, b))
 
 
+def test_keyframe_store_checkpoint_holds_only_the_rays_in_use(tmp_path):
+    store = KeyframeStore()
+    for k in range(5):  # 5 x 1000 rays: the buffers have grown (doubling) past the 5000 in use
+        store.add(k, torch.rand(1000, 3), torch.rand(1000, 3), torch.rand(1000), torch.rand(1000))
+    assert store.dirs.shape[0] > store.n_rays == 5000
+    state = store.state_dict()
+    for key in ("dirs", "rgb", "depth", "slot", "behind"):
+        t = state[key]
+        assert t.shape[0] == 5000 and t.untyped_storage().nbytes() == t.numel() * t.element_size(), key
+    torch.save(state, tmp_path / "kf.pt")
+    rays_bytes = 5000 * (3 + 3 + 1 + 1) * 4 + 5000 * 8  # dirs, rgb, depth, behind (float32), slot (int64)
+    assert (tmp_path / "kf.pt").stat().st_size < 1.1 * rays_bytes
+    other = KeyframeStore()
+    other.load_state_dict(torch.load(tmp_path / "kf.pt"))
+    assert all(torch.equal(getattr(other, k)[:5000], getattr(store, k)[:5000]) for k in ("dirs", "rgb", "depth", "slot"))
+
+
 def test_relative_trajectory_carries_non_keyframes_with_their_refined_keyframe():
     """Frames 1, 2 were tracked relative to keyframe 0, frame 4 relative to keyframe 3; bundle adjustment then moved
     the keyframes. Keyframes keep their refined pose, the others keep their tracked offset to it."""

@@ -292,7 +292,8 @@ def icp_point_to_point(
         max_corr: metres, maximum correspondence distance.
         init: (4, 4) initial transform (identity by default).
     Returns:
-        T (4, 4) mapping src into dst's frame, and {"fitness", "inlier_rmse", "iterations"}.
+        T (4, 4) mapping src into dst's frame, and {"fitness", "inlier_rmse", "iterations"} (fitness and inlier
+        RMSE of the returned T).
     """
     src = np.asarray(src, dtype=np.float64)
     tree = cKDTree(np.asarray(dst, dtype=np.float64))
@@ -314,6 +315,10 @@ def icp_point_to_point(
         fitness, rmse = float(new_fit), new_rmse
         if converged:
             break
+    d, _ = tree.query(src @ T[:3, :3].T + T[:3, 3], distance_upper_bound=max_corr)  # the returned T's, as Open3D
+    ok = np.isfinite(d)
+    if ok.any():
+        fitness, rmse = float(ok.mean()), float(np.sqrt(np.mean(d[ok] ** 2)))
     return T, {"fitness": float(fitness), "inlier_rmse": float(rmse), "iterations": it}
 
 

@@ -70,7 +70,7 @@ FINISHED_STATUSES = ("slam_done", "complete")
 def _read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DataError(f"{path}: invalid JSON ({e})") from None
 
 
@@ -123,8 +123,12 @@ def trajectory_metrics(
     Keyframe ATE (`ate_keyframes_rmse_m`) restricts both arrays to `keyframe_rows` and aligns that subset on its
     own. Returns ate_rmse_m, ate_mean_m, ate_median_m, ate_std_m, ate_min_m, ate_max_m, ate_n_used, ate_n_excluded,
     rpe_trans_m, rpe_rot_deg, rpe_n_pairs, drift_m_per_100, unaligned_final_m (`drift_per_100`),
-    ate_keyframes_rmse_m, ate_keyframes_n_used.
+    ate_keyframes_rmse_m, ate_keyframes_n_used. Raises DataError for a Sim(3) alignment of an estimate whose
+    positions never move (the scale is undefined; a keyframe subset that never moves leaves its keys empty).
     """
+    if Alignment(align) is Alignment.SIM3 and not _moves(est_c2w, gt_c2w):
+        raise DataError("Sim(3) alignment: the estimated camera positions never move, so the scale is undefined "
+                        "(align with se3)")
     a = ate(est_c2w, gt_c2w, align=align)
     r = rpe(est_c2w, gt_c2w, delta=rpe_delta)
     d = drift_per_100(est_c2w, gt_c2w)
@@ -146,12 +150,24 @@ def trajectory_metrics(
         "ate_keyframes_rmse_m": None,
         "ate_keyframes_n_used": 0,
     }
-    if keyframe_rows is not None and len(keyframe_rows) > 0:
-        rows = np.asarray(keyframe_rows, dtype=np.int64)
+    rows = np.asarray(keyframe_rows if keyframe_rows is not None else [], dtype=np.int64)
+    if len(rows) > 0 and (Alignment(align) is not Alignment.SIM3
+                          or _moves(np.asarray(est_c2w)[rows], np.asarray(gt_c2w)[rows])):
         k = ate(np.asarray(est_c2w)[rows], np.asarray(gt_c2w)[rows], align=align)
         out["ate_keyframes_rmse_m"] = _f(k["rmse"])
         out["ate_keyframes_n_used"] = k["n_used"]
     return out
+
+
+def _moves(est_c2w: np.ndarray, gt_c2w: np.ndarray) -> bool:
+    """Whether the estimated positions of the frames ATE uses (both poses finite) differ, or fewer than 2 are used
+    (a Sim(3) alignment then falls back to SE(3) in `ate`)."""
+    est, gt = np.asarray(est_c2w, dtype=np.float64), np.asarray(gt_c2w, dtype=np.float64)
+    if est.ndim != 3 or est.shape != gt.shape:
+        return True  # `ate` reports the shapes
+    used = np.isfinite(est.reshape(len(est), -1)).all(1) & np.isfinite(gt.reshape(len(gt), -1)).all(1)
+    p = est[used, :3, 3]
+    return len(p) < 2 or bool((p != p[0]).any())
 
 
 def associated_gt(ts_est: np.ndarray, ts_gt: np.ndarray, gt: np.ndarray, max_diff: float) -> np.ndarray:
@@ -284,15 +300,21 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
         stage(log, f"evaluation: ATE / RPE of {len(est)} poses ({Alignment(cfg.align).value} alignment)")
         gt_full = associated_gt(ts_est, ts_gt, gt, cfg.max_time_diff)
         rows = _keyframe_rows(run_dir, run_info, ts_est, cfg.max_time_diff, notes)
-        res.update(trajectory_metrics(est, gt_full, rows, cfg.align, cfg.rpe_delta))
+        try:
+            res.update(trajectory_metrics(est, gt_full, rows, cfg.align, cfg.rpe_delta))
+        except DataError as e:  # e.g. Sim(3) alignment of an estimate that never moved: the keys stay null
+            notes.append(f"no ATE/RPE: {e}")
         if res["ate_n_used"] == 0:
             notes.append(f"ATE: no estimated timestamp within {cfg.max_time_diff} s of a GT timestamp")
         rel_path = rd.trajectory_relative
         if rel_path.is_file():  # docs/spec.md §7.6: non-keyframes carried along by their keyframe's refinement
             ts_rel, est_rel = read_tum(rel_path)
             rel_gt = associated_gt(ts_rel, ts_gt, gt, cfg.max_time_diff)
-            res["ate_relative_rmse_m"] = trajectory_metrics(est_rel, rel_gt, None, cfg.align, cfg.rpe_delta)[
-                "ate_rmse_m"]
+            try:
+                res["ate_relative_rmse_m"] = trajectory_metrics(est_rel, rel_gt, None, cfg.align, cfg.rpe_delta)[
+                    "ate_rmse_m"]
+            except DataError as e:
+                notes.append(f"no relative ATE: {e}")
     else:
         notes.append("trajectory_gt.txt missing: no ATE/RPE")
 
@@ -362,6 +384,7 @@ def _mesh_eval(rec: trimesh.Trimesh, gt: trimesh.Trimesh, cams: np.ndarray, intr
     if culled_out is not None:
         with atomic_path(culled_out) as tmp:
             culled.export(tmp)
+    empty_gt = _no_surface(gt)
     details = {
         "rec_faces": int(len(rec.faces)),
         "culled_faces": int(len(culled.faces)),
@@ -371,14 +394,21 @@ def _mesh_eval(rec: trimesh.Trimesh, gt: trimesh.Trimesh, cams: np.ndarray, intr
         "icp_transform": None,
         "icp_info": None,
     }
-    if len(culled.faces) == 0:
+    if _no_surface(culled) or empty_gt:
+        what = ("culled reconstruction is empty" if _no_surface(culled) else
+                "ground-truth mesh has no triangles" + (" seen by the cameras (cull_gt)" if cfg.cull_gt else ""))
         return {"acc_m": None, "comp_m": None, "comp_ratio": None, "mesh_eval": details,
-                "error": "culled reconstruction is empty: no Acc/Comp"}
+                "error": f"{what}: no Acc/Comp"}
     stage(log, f"evaluation: accuracy / completion on {cfg.n_samples} surface samples{' after ICP' if cfg.icp else ''}")
     m = mesh_metrics(culled, gt, n_samples=cfg.n_samples, threshold=cfg.threshold, icp=cfg.icp, seed=cfg.seed)
     details["icp_transform"] = m["icp_transform"]
     details["icp_info"] = m["icp_info"]
     return {"acc_m": m["acc_m"], "comp_m": m["comp_m"], "comp_ratio": m["comp_ratio"], "mesh_eval": details}
+
+
+def _no_surface(mesh: trimesh.Trimesh) -> bool:
+    """True for a mesh with nothing to sample (no triangles, or only zero-area ones)."""
+    return len(mesh.faces) == 0 or not mesh.area > 0
 
 
 def culling_cameras(gt_cams: np.ndarray, cfg: EvalConfig) -> np.ndarray:
@@ -447,6 +477,9 @@ def eval_mesh_files(
     rec, gt = load_mesh(rec_path), load_mesh(gt_path)
     protocol = cfg.protocol()
     del protocol["alignment"], protocol["association"], protocol["rpe_delta"]
+    for path, mesh in ((rec_path, rec), (gt_path, gt)):
+        if _no_surface(mesh):
+            raise DataError(f"{path}: no triangles with area (a point cloud?): expected a triangle mesh")
     if cameras_path is None:
         m = mesh_metrics(rec, gt, n_samples=n_samples, threshold=threshold, icp=icp, seed=seed)
         protocol["culling"] = None
@@ -459,7 +492,7 @@ def eval_mesh_files(
         _, cams = read_tum(cameras_path)
         out = _mesh_eval(rec, gt, cams, intrinsics_from_dict(intrinsics), cfg, culled_out)
         if out.get("error"):
-            raise DataError(f"{rec_path}: {out['error']} (cameras {cameras_path})")
+            raise DataError(f"{rec_path} vs {gt_path}: {out['error']} (cameras {cameras_path})")
     out["protocol"] = protocol
     return out
 

@@ -96,10 +96,14 @@ class KeyframeStore:
     def state_dict(self) -> dict[str, Any]:
         """The rays in use (on the CPU) and the keyframe frame ids, for checkpoints."""
         m = self._n
-        state = {"frame_ids": list(self.frame_ids), "dirs": self.dirs[:m].cpu(), "rgb": self.rgb[:m].cpu(),
-                 "depth": self.depth[:m].cpu(), "slot": self.slot[:m].cpu()}
+
+        def rows(t: Tensor) -> Tensor:  # a copy of the rows in use: torch.save of a view writes its whole buffer,
+            return t[:m].cpu() if t.device.type != "cpu" else t[:m].clone()  # up to twice them (`_grow` doubles)
+
+        state = {"frame_ids": list(self.frame_ids), "dirs": rows(self.dirs), "rgb": rows(self.rgb),
+                 "depth": rows(self.depth), "slot": rows(self.slot)}
         if self.behind is not None:
-            state["behind"] = self.behind[:m].cpu()
+            state["behind"] = rows(self.behind)
         return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:

@@ -544,6 +544,8 @@ class SlamSystem:
         self.state.map_ms.append(map_ms)
         fallback = None
         if bool(torch.isfinite(res.kf_c2w).all()) and bool(torch.isfinite(res.cur_c2w).all()):
+            if not (torch.equal(self.est[kf_ids], res.kf_c2w) and torch.equal(self.est[i], res.cur_c2w)):
+                self._local_target = None  # bundle adjustment moved poses: the GICP local map is rebuilt at them
             self.est[kf_ids] = res.kf_c2w
             self.est[i] = res.cur_c2w
         else:  # keep the poses from before bundle adjustment
