@@ -203,15 +203,14 @@ def _check_device(cfg) -> None:
 def _check_resumable_data(run_dir: str) -> None:
     """ConfigError when the run's config.yaml names its dataset folder by a relative path that does not exist from
     here (runs made before paths were recorded absolute)."""
-    import yaml
-
     from inrslam.errors import ConfigError
     from inrslam.io.rundir import RunDir
+    from inrslam.io.yamlfile import load_yaml
 
     cfg_path = RunDir(run_dir).config
     try:
-        path = str(((yaml.safe_load(cfg_path.read_text()) or {}).get("data") or {}).get("path") or "")
-    except (OSError, yaml.YAMLError, AttributeError):
+        path = str(((load_yaml(cfg_path) or {}).get("data") or {}).get("path") or "")
+    except (ConfigError, AttributeError):
         return  # resume_slam reports a missing / unreadable config.yaml itself
     if path and not path.startswith("builtin:") and not Path(path).expanduser().is_absolute() \
             and not Path(path).expanduser().is_dir():
@@ -567,16 +566,19 @@ def _run_eval_config(args):
     the user gave explicitly (--align, --max-diff, --icp, --virtual-cameras, --cull-gt) on top."""
     from dataclasses import replace
 
-    import yaml
-
     from inrslam.config.loader import build_config
+    from inrslam.errors import ConfigError
     from inrslam.eval.config import Alignment, EvalConfig
     from inrslam.io.rundir import RunDir
+    from inrslam.io.yamlfile import load_yaml
 
     cfg_path = RunDir(args.run_dir).config
     cfg = EvalConfig()
     if cfg_path.is_file():  # only the `eval:` section matters here (other sections may come from older versions)
-        section = (yaml.safe_load(cfg_path.read_text()) or {}).get("eval") or {}
+        data = load_yaml(cfg_path) or {}
+        section = (data.get("eval") if isinstance(data, dict) else None) or {}
+        if not isinstance(section, dict):
+            raise ConfigError(f"{cfg_path}: eval: expected a mapping, got {type(section).__name__}")
         cfg = build_config(EvalConfig, [(section, f"{cfg_path} (eval section)")])
     if args.align is not None:
         cfg = replace(cfg, align=Alignment(args.align))

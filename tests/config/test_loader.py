@@ -115,3 +115,21 @@ def test_faithful_switch_reaches_every_section():
     assert not cfg.slam.eval_final_pose
     default = load_config(preset="paper")
     assert not default.field.faithful and default.sampling.band == 1.0 and default.loss.reduction.value == "per_ray"
+
+
+def test_date_like_values_stay_strings(tmp_path):
+    # YAML 1.1 reads 2023-02-28 as a date (and 2023-02-29 as an error): a folder named so must stay its name
+    assert parse_overrides(["data.path=2023-02-29", "slam.track_iters=10"]) == {
+        "data": {"path": "2023-02-29"}, "slam": {"track_iters": 10}}
+    assert load_config(overrides=["data.path=2023-02-28"]).data.path == "2023-02-28"
+    (tmp_path / "c.yaml").write_text("data:\n  path: 2023-02-29\n")
+    assert load_config(tmp_path / "c.yaml").data.path == "2023-02-29"
+
+
+def test_config_file_that_is_not_utf8_names_the_file(tmp_path):
+    (tmp_path / "c.yaml").write_bytes(b"data:\n  path: \xff\xfe\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml: cannot read \(UnicodeDecodeError"):
+        load_config(tmp_path / "c.yaml")
+    (tmp_path / "d.yaml").write_text("seed: !!int x\n")  # a tag its value cannot hold
+    with pytest.raises(ConfigError, match=r"d\.yaml: invalid YAML: invalid literal for int"):
+        load_config(tmp_path / "d.yaml")

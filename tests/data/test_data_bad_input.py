@@ -5,6 +5,10 @@ Structural problems (counts, pose-file format) fail at open time; a broken image
 
 from __future__ import annotations
 
+import json
+import struct
+import zlib
+
 import numpy as np
 import pytest
 from data_layouts import make_7scenes, make_neuralrgbd, make_replica, make_scannet, make_tum, write_png16, write_rgb
@@ -29,6 +33,24 @@ def _replica_15_values(r):
     lines = (r / "traj.txt").read_text().splitlines()
     lines[1] = " ".join(lines[1].split()[:15])
     (r / "traj.txt").write_text("\n".join(lines) + "\n")
+
+
+CAMERA = {"w": 32, "h": 24, "fx": 20.0, "fy": 20.0, "cx": 16.0, "cy": 12.0, "scale": 6553.5}
+
+
+def _replica_comment_then_nonrigid(r):
+    lines = (r / "traj.txt").read_text().splitlines()
+    vals = lines[1].split()
+    vals[15] = "2"  # bottom row [0, 0, 0, 2], on line 4 of the file below
+    (r / "traj.txt").write_text("\n".join(["# c2w, row-major", "", lines[0], " ".join(vals), lines[2]]) + "\n")
+
+
+def _huge_png_header(path):
+    """Rewrite a PNG's size in its IHDR chunk to 20000 x 20000 (CRC recomputed): a decompression bomb's header."""
+    data = bytearray(path.read_bytes())
+    data[16:24] = struct.pack(">II", 20000, 20000)
+    data[29:33] = struct.pack(">I", zlib.crc32(bytes(data[12:29])))
+    path.write_bytes(bytes(data))
 
 
 def _replica_nonrigid(r):
@@ -81,6 +103,21 @@ OPEN_CASES = [
      r"frame-000002\.pose\.txt: count mismatch: 2 pose files for 3"),
     ("7scenes: bad intrinsics file", make_7scenes, lambda r: (r / "camera-intrinsics.txt").write_text("585 0 320\n"),
      None, r"camera-intrinsics\.txt: expected 3 lines"),
+    ("replica: error line counted with comments", make_replica, _replica_comment_then_nonrigid, K,
+     r"traj\.txt:4: pose bottom row"),
+    ("replica: zero depth scale in cam_params.json", make_replica,
+     lambda r: (r / "cam_params.json").write_text(json.dumps({"camera": CAMERA | {"scale": 0}})), DataConfig(),
+     r"cam_params\.json: camera\.scale: depth scale must be a finite number > 0"),
+    ("replica: negative depth scale in cam_params.json", make_replica,
+     lambda r: (r / "cam_params.json").write_text(json.dumps({"camera": CAMERA | {"scale": -6553.5}})), DataConfig(),
+     r"cam_params\.json: camera\.scale: depth scale must be a finite number > 0 .*, got -6553\.5"),
+    ("tum: zero depth scale in intrinsics.json", make_tum,
+     lambda r: (r / "intrinsics.json").write_text(json.dumps({"fx": 20, "fy": 20, "cx": 16, "cy": 12, "width": 32,
+                                                               "height": 24, "depth_scale": 0})), DataConfig(),
+     r"intrinsics\.json: depth_scale: depth scale must be a finite number > 0"),
+    ("replica: depth header of 20000 x 20000 px", make_replica,
+     lambda r: _huge_png_header(r / "results" / "depth000000.png"), K,
+     r"depth000000\.png: cannot read image header \(DecompressionBombError"),
 ]
 
 
@@ -132,3 +169,24 @@ def test_non_finite_poses_are_not_errors(tmp_path):
     ds = open_folder(lay.root)
     assert list(ds.pose_valid) == [True, False, True]
     assert np.all(np.isnan(ds[1].c2w))
+
+
+def test_tum_quaternion_of_huge_components_is_a_rotation(tmp_path):
+    lay = make_tum(tmp_path)
+    lines = (lay.root / "groundtruth.txt").read_text().splitlines()
+    ts, *xyz = lines[1].split()[:4]
+    lines[1] = " ".join([ts, *xyz, "0", "0", "0", "1e300"])  # finite, but its norm overflows
+    (lay.root / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+    ds = open_folder(lay.root, K)
+    np.testing.assert_allclose(ds.poses[0][:3, :3], np.eye(3))
+    lines[1] = " ".join([ts, *xyz, "0", "0", "0", "0"])
+    (lay.root / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=r"groundtruth\.txt:2: zero quaternion"):
+        open_folder(lay.root, K)
+
+
+def test_16bit_image_as_colour_named(tmp_path):
+    lay = make_neuralrgbd(tmp_path)
+    write_png16(lay.root / "images" / "img2.png", np.full((24, 32), 30000))
+    with pytest.raises(DataError, match=r"img2\.png: colour image has I;16 pixels \(16/32-bit: a depth image\?\)"):
+        open_folder(lay.root, K)[2]

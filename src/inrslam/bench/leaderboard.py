@@ -15,10 +15,10 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
-
 from inrslam.bench.spec import scene_short_name
+from inrslam.errors import ConfigError
 from inrslam.io.rundir import RunDir
+from inrslam.io.yamlfile import load_yaml
 
 MISSING = "–"
 SKIP_DIRS = {"report", "slurm", "checkpoints", "meshes", "tensorboard"}
@@ -133,8 +133,10 @@ def read_run(run_dir: str | os.PathLike) -> RunRecord:
     info = rd.read_run_info() or {}
     bench = rd.read_json("bench") or {}
     try:
-        config = yaml.safe_load(rd.config.read_text()) or {}
-    except (OSError, yaml.YAMLError):
+        config = load_yaml(rd.config) or {}
+    except ConfigError:
+        config = {}
+    if not isinstance(config, dict):
         config = {}
     data_path = (config.get("data") or {}).get("path") or (info.get("dataset") or {}).get("root") or ""
     scene = bench.get("scene") or (scene_short_name(str(data_path)) if data_path else d.name)

@@ -28,11 +28,12 @@ from inrslam.bench.leaderboard import (
     render_label,
 )
 from inrslam.bench.spec import sanitize
-from inrslam.errors import DataError
+from inrslam.errors import ConfigError, DataError
 from inrslam.eval.trajectory import associate, ate
 from inrslam.io.atomic import atomic_path
 from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import read_tum
+from inrslam.io.yamlfile import load_yaml
 
 MARKERS = "osD^v<>pPX*h"
 PRESET_FILLS = ("full", "none", "left", "right", "bottom", "top")  # marker fill per preset (tradeoff plot)
@@ -191,11 +192,11 @@ def ate_over_frames(run_dir: str | os.PathLike, align: str | None = None) -> tup
     except DataError:
         return None
     if align is None:
-        import yaml
-
         try:
-            cfg = yaml.safe_load(RunDir(d).config.read_text()) or {}
-        except (OSError, yaml.YAMLError):
+            cfg = load_yaml(RunDir(d).config) or {}
+        except ConfigError:
+            cfg = {}
+        if not isinstance(cfg, dict):
             cfg = {}
         align = str((cfg.get("eval") or {}).get("align") or "se3")
     ia, ib = associate(ts_e, ts_g, max_diff=1e-3)

@@ -24,9 +24,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from inrslam.errors import ConfigError
+from inrslam.io.yamlfile import load_yaml
 
 SPEC_DIR = Path(__file__).resolve().parent / "specs"
 
@@ -202,10 +201,7 @@ def load_spec(spec: str | os.PathLike | dict | SweepSpec) -> SweepSpec:
         if not path.is_file():
             shipped = sorted(p.stem for p in SPEC_DIR.glob("*.yaml"))
             raise ConfigError(f"{spec}: sweep spec not found (shipped specs: {', '.join(shipped)})")
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: invalid YAML: {e}") from None
+        data = load_yaml(path) or {}
         source = str(path)
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a mapping at the top level")
@@ -309,7 +305,6 @@ def check_sweep_variants(spec: SweepSpec, runs: list[RunSpec], cfgs: dict[str, A
 def check_registry_names(cfg) -> None:
     """ConfigError when `field.encoding` or `render.name` is not registered (closest name suggested)."""
     from inrslam.fields.registry import ENCODINGS
-
     from inrslam.rendering import RENDERERS
 
     if cfg.field.encoding not in ENCODINGS:

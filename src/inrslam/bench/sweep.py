@@ -27,6 +27,7 @@ from inrslam.bench.worker import fn_path
 from inrslam.errors import ConfigError
 from inrslam.io.atomic import write_json, write_text
 from inrslam.io.rundir import RunDir
+from inrslam.io.yamlfile import load_yaml
 
 STATUS_FILE = "sweep_status.json"
 
@@ -88,8 +89,8 @@ def config_differences(run_dir: Path, cfg) -> list[str]:
 
     path = RunDir(run_dir).config
     try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError):
+        data = load_yaml(path) or {}
+    except ConfigError:
         return []
     try:
         old = _flatten(apply_aliases(data, str(path)) if isinstance(data, dict) else {})

@@ -84,8 +84,8 @@ def _restore_thread_state(state: dict) -> None:
 
 def slam_run(run: dict, run_dir: Path) -> dict:
     """Default run function: resume a checkpointed partial run, else start it over (overwrite)."""
-    from inrslam.bench.spec import RunSpec, resolve_config
     from inrslam import runner as slam
+    from inrslam.bench.spec import RunSpec, resolve_config
 
     if RunDir(run_dir).has_checkpoint():
         slam.resume_slam(run_dir, progress=None)  # at the thread count its run_info.json records

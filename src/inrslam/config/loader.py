@@ -20,6 +20,7 @@ import yaml
 
 from inrslam.config.ranges import check_ranges
 from inrslam.errors import ConfigError
+from inrslam.io.yamlfile import load_yaml, parse_yaml
 
 PRESET_DIR = Path(__file__).resolve().parent.parent / "configs"
 
@@ -41,10 +42,7 @@ def _preset_path(name: str) -> Path:
 def _read_yaml(path: Path) -> dict:
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: invalid YAML: {e}") from None
+    data = load_yaml(path) or {}
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
     return data
@@ -78,7 +76,7 @@ def parse_overrides(items: list[str]) -> dict:
         key, _, raw = item.partition("=")
         key = key.strip().lstrip("-")
         try:
-            value = yaml.safe_load(raw) if raw.strip() else ""
+            value = parse_yaml(raw) if raw.strip() else ""
         except yaml.YAMLError:
             value = raw
         node = out

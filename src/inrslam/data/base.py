@@ -237,6 +237,15 @@ class FolderDataset:
         return f"{type(self).__name__}(root={str(self.root)!r}, frames={len(self)}, intrinsics={self.intrinsics})"
 
 
+def checked_depth_scale(value: float, source: str) -> float:
+    """A depth scale (stored units per metre) read from a dataset's own file, or a `DataError` naming `source` unless
+    it is finite and > 0. Example: Replica's cam_params.json scale 6553.5 -> 6553.5."""
+    v = float(value)
+    if not (math.isfinite(v) and v > 0):
+        raise DataError(f"{source}: depth scale must be a finite number > 0 (units per metre), got {value}")
+    return v
+
+
 def known_bounds(table: Mapping[str, Sequence[Sequence[float]]], name: str) -> Optional[np.ndarray]:
     """(3, 2) bounds from `table` when the folder `name` is a key, else None."""
     b = table.get(name)

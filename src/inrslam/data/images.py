@@ -20,7 +20,7 @@ def _open(path: Path, what: str) -> Image.Image:
     try:
         img = Image.open(path)
         img.load()  # decode now so truncated / corrupt files fail here
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError, SyntaxError) as e:
         raise DataError(f"{path}: cannot read {what} ({type(e).__name__}: {e})") from None
     return img
 
@@ -33,7 +33,7 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
     try:
         with Image.open(path) as img:
             return img.size
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError, SyntaxError) as e:
         raise DataError(f"{path}: cannot read image header ({type(e).__name__}: {e})") from None
 
 
@@ -46,6 +46,9 @@ def read_rgb(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np
     """
     path = Path(path)
     img = _open(path, "colour image")
+    if img.mode in _DEPTH_MODES or img.mode == "F":
+        raise DataError(f"{path}: colour image has {img.mode} pixels (16/32-bit: a depth image?); expected 8-bit "
+                        "colour or grey")
     if img.mode != "RGB":
         try:
             img = img.convert("RGB")

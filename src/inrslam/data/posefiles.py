@@ -55,13 +55,15 @@ def read_pose_matrix(path: str | os.PathLike) -> np.ndarray:
     return read_matrix(path, 4, 4, "4x4 camera-to-world pose, 4 lines of 4 values")
 
 
-def read_pose_rows(path: str | os.PathLike) -> np.ndarray:
-    """One pose per line, 16 values row-major (Replica `traj.txt`) -> (N, 4, 4)."""
+def read_pose_rows(path: str | os.PathLike) -> tuple[np.ndarray, list[int]]:
+    """One pose per line, 16 values row-major (Replica `traj.txt`) -> (N, 4, 4) poses and each one's line number."""
     path = Path(path)
     lines = read_lines(path, "trajectory file")
     if not lines:
         raise DataError(f"{path}: no poses found (expected one line of 16 values per frame)")
-    return np.stack([parse_floats(path, n, s, 16, "16 values of a row-major 4x4 pose").reshape(4, 4) for n, s in lines])
+    poses = np.stack([parse_floats(path, n, s, 16, "16 values of a row-major 4x4 pose").reshape(4, 4)
+                      for n, s in lines])
+    return poses, [n for n, _ in lines]
 
 
 def read_pose_blocks(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, list[int]]:

@@ -20,6 +20,7 @@ from typing import Optional
 from inrslam.data.base import (
     FolderDataset,
     check_count,
+    checked_depth_scale,
     first_existing,
     known_bounds,
     numbered_files,
@@ -64,9 +65,9 @@ class ReplicaDataset(FolderDataset):
         depth = numbered_files(res, r"depth(\d+)\.png")
         ids = pair_numbered(colour, depth, f"{res}/frame*.jpg", f"{res}/depth*.png")
         traj = self.root / "traj.txt"
-        raw = read_pose_rows(traj)
+        raw, line_numbers = read_pose_rows(traj)
         check_count(len(ids), len(raw), traj)
-        poses = [check_pose(T, f"{traj}:{k + 1}") for k, T in enumerate(raw)]
+        poses = [check_pose(T, f"{traj}:{n}") for T, n in zip(raw, line_numbers)]
         self._set_numbered_frames(colour, depth, ids, poses, time_from_number=False)
         self.bounds = known_bounds(REPLICA_BOUNDS, self.root.name)
         self.gt_mesh = first_existing([self.root.parent / f"{self.root.name}_mesh.ply", self.root / "mesh.ply"])
@@ -75,6 +76,6 @@ class ReplicaDataset(FolderDataset):
             return Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680)
         cam = read_camera_json(cam_file, "camera")
         if self.cfg.depth_scale is None and "scale" in cam:
-            self.depth_scale = cam["scale"]
+            self.depth_scale = checked_depth_scale(cam["scale"], f"{cam_file}: camera.scale")
         return Intrinsics(cam["fx"], cam["fy"], cam["cx"], cam["cy"], int(cam.get("w", 1200)), int(cam.get("h", 680)))
 

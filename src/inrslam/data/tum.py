@@ -20,13 +20,13 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from inrslam.data.base import FolderDataset, first_existing, read_camera_json
+from inrslam.data.base import FolderDataset, checked_depth_scale, first_existing, read_camera_json
 from inrslam.data.frame import NAN_POSE, Intrinsics
 from inrslam.data.posefiles import parse_floats, read_lines
 from inrslam.data.registry import DATASETS
 from inrslam.errors import ConfigError, DataError
+from inrslam.io.trajectory import quat_rotation
 
 TUM_INTRINSICS = {
     "freiburg1": (517.3, 516.5, 318.6, 255.3),
@@ -67,11 +67,8 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise DataError(f"{path}:{n}: non-finite timestamp")
         T = NAN_POSE.copy()
         if np.all(np.isfinite(v[1:])):
-            q = v[4:8]
-            if np.linalg.norm(q) < 1e-9:
-                raise DataError(f"{path}:{n}: zero quaternion (expected qx qy qz qw of a rotation)")
             T = np.eye(4)
-            T[:3, :3] = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()  # scipy: scalar-last (x, y, z, w)
+            T[:3, :3] = quat_rotation(v[4:8], f"{path}:{n}")
             T[:3, 3] = v[1:4]
         ts.append(v[0])
         poses.append(T)
@@ -157,7 +154,7 @@ class TUMDataset(FolderDataset):
         if cam_file.is_file():
             cam = read_camera_json(cam_file)
             if self.cfg.depth_scale is None and "depth_scale" in cam:
-                self.depth_scale = cam["depth_scale"]
+                self.depth_scale = checked_depth_scale(cam["depth_scale"], f"{cam_file}: depth_scale")
             w, h = int(cam.get("width", 640)), int(cam.get("height", 480))
             return Intrinsics(cam["fx"], cam["fy"], cam["cx"], cam["cy"], w, h)
         name = str(self.root.resolve()).lower()

@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 from rich.table import Table
 
-from inrslam.errors import DataError
+from inrslam.errors import ConfigError, DataError
 from inrslam.eval.config import Alignment, EvalConfig
 from inrslam.eval.mesh import GT_CULL_MAX_EDGE, cull_mesh, mesh_metrics, subdivide_to_edge
 from inrslam.eval.trajectory import associate, ate, drift_per_100, rpe
@@ -25,6 +25,7 @@ from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.io.atomic import atomic_path
 from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import read_tum
+from inrslam.io.yamlfile import load_yaml
 from inrslam.status import logger, stage
 
 log = logger(__name__)
@@ -206,12 +207,10 @@ def _keyframe_rows(run_dir: Path, run_info: dict, ts_est: np.ndarray, max_diff: 
 
 def _config_data_path(run_dir: Path) -> Optional[str]:
     """`data.path` of the run's config.yaml, or None (missing / unreadable file, built-in scene)."""
-    import yaml
-
     try:
-        cfg = yaml.safe_load(RunDir(run_dir).config.read_text()) or {}
+        cfg = load_yaml(RunDir(run_dir).config) or {}
         path = (cfg.get("data") or {}).get("path")
-    except (OSError, yaml.YAMLError, AttributeError):
+    except (ConfigError, AttributeError):
         return None
     return str(path) if path and not str(path).startswith("builtin:") else None
 

@@ -15,6 +15,18 @@ from inrslam.errors import DataError
 from inrslam.io.atomic import write_text
 
 
+def quat_rotation(q: np.ndarray, where: str) -> np.ndarray:
+    """(3, 3) rotation of a finite quaternion (qx, qy, qz, qw) of any length, or a `DataError` at `where` for a zero
+    one (length below 1e-9). Scaled by its largest component before normalising, so that 1e300-sized components do
+    not overflow. Example: (0, 0, 0, 2) -> identity."""
+    q = np.asarray(q, dtype=np.float64)
+    m = float(np.abs(q).max())
+    if not m > 0 or m * np.linalg.norm(q / m) < 1e-9:
+        raise DataError(f"{where}: zero quaternion (expected qx qy qz qw of a rotation)")
+    u = q / m
+    return Rotation.from_quat(u / np.linalg.norm(u)).as_matrix()  # scipy: scalar-last (x, y, z, w)
+
+
 def poses_to_tum_lines(timestamps: np.ndarray, c2w: np.ndarray) -> list[str]:
     """(N,) seconds and (N, 4, 4) c2w -> TUM lines; non-finite poses are skipped."""
     lines = []
@@ -60,11 +72,8 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             raise DataError(f"{path}:{lineno}: non-numeric value in {s!r}") from None
         if not np.all(np.isfinite(vals)):
             raise DataError(f"{path}:{lineno}: non-finite value in {s!r}")
-        q = vals[4:8]
-        if np.linalg.norm(q) < 1e-9:
-            raise DataError(f"{path}:{lineno}: zero quaternion")
         T = np.eye(4)
-        T[:3, :3] = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
+        T[:3, :3] = quat_rotation(vals[4:8], f"{path}:{lineno}")
         T[:3, 3] = vals[1:4]
         ts.append(vals[0])
         poses.append(T)

@@ -1,0 +1,48 @@
+"""YAML for configs, sweep specs and run directories: safe loading without YAML 1.1 timestamps (a value such as
+2023-02-28, e.g. a folder name, stays the string it was written as), and file reads whose every failure is one
+`ConfigError` naming the file."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from inrslam.errors import ConfigError
+
+_TIMESTAMP = "tag:yaml.org,2002:timestamp"
+
+
+class _Loader(yaml.SafeLoader):
+    """`yaml.SafeLoader` whose implicit resolvers leave out timestamps."""
+
+
+_Loader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag != _TIMESTAMP]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+
+
+def parse_yaml(text: str) -> Any:
+    """Python objects of a YAML text (safe tags only, no timestamps); `yaml.YAMLError` when it is not valid YAML
+    (also for a value its tag cannot hold, e.g. `!!int x`). Example: "path: 2023-02-28" -> {"path": "2023-02-28"}."""
+    try:
+        return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+    except ValueError as e:  # a constructor's own error (bad explicit tag value)
+        raise yaml.YAMLError(str(e)) from None
+
+
+def load_yaml(path: str | os.PathLike) -> Any:
+    """`parse_yaml` of the UTF-8 file at `path`; a `ConfigError` naming the file when it cannot be read (missing,
+    unreadable, not UTF-8) or is not valid YAML."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: cannot read ({type(e).__name__}: {e})") from None
+    try:
+        return parse_yaml(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: invalid YAML: {e}") from None
