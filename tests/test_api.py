@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -87,3 +88,11 @@ def test_the_example_runs(tmp_path):
     lines = res.stdout.splitlines()
     assert any(line.startswith("dense ") for line in lines) and any(line.startswith("hash ") for line in lines)
     assert (tmp_path / "dense" / "metrics.json").is_file() and (tmp_path / "hash" / "metrics.json").is_file()
+
+
+@pytest.mark.parametrize("text", ["[0, 5]", '{"keyframes": "0,5"}', '{"keyframes": [0, "x", true, 5]}'])
+def test_load_run_reads_a_written_over_keyframes_json(finished, tmp_path, text):
+    copy = tmp_path / "run"
+    shutil.copytree(finished.root, copy)
+    (copy / "keyframes.json").write_text(text)
+    assert inrslam.load_run(copy).keyframes == ([0, 5] if text.startswith('{"keyframes": [') else [])

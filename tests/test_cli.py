@@ -156,3 +156,29 @@ def test_a_cpu_only_kernel_on_a_gpu_device_is_a_one_line_config_error(monkeypatc
     _check_device(load_config(preset="quick", overrides=[f"{key}=auto"]))  # auto picks torch there: fine
     monkeypatch.setattr(system_mod, "resolve_device", lambda name: torch.device("cpu"))
     _check_device(load_config(preset="quick", overrides=[f"{key}=numba"]))  # and numba on the CPU
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--mesh", "a.ply", "--gt-mesh", "b.ply", "--intrinsics", "1,2,x,4,5,6"], "--intrinsics expects fx,fy,cx,cy"),
+    (["--mesh", "a.ply", "--gt-mesh", "b.ply", "--intrinsics", "50,50,32,24,64.5,48"], "whole pixels"),
+    (["--mesh", "a.ply", "--gt-mesh", "b.ply", "--intrinsics", "0,50,32,24,64,48"], "fx, fy > 0"),
+    (["--traj", "a.txt", "--gt", "b.txt", "--max-diff", "-1"], "expected a number of seconds >= 0, got '-1'"),
+])
+def test_eval_arguments_are_checked_in_one_line(tmp_path, capsys, args, message):
+    with pytest.raises(SystemExit) if "--max-diff" in args else _no_raise():
+        assert main(["eval", *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and message in err.splitlines()[-1]  # one error line (argparse: after its usage)
+
+
+def test_eval_run_dir_with_a_written_over_config_is_one_line(tmp_path, capsys):
+    rd = write_fake_run(tmp_path / "run", "hash", "direct", frames=12)
+    (rd / "config.yaml").write_text("eval: [1, 2]\n")
+    assert main(["eval", str(rd)]) == 2
+    assert "config.yaml: eval: expected a mapping, got list" in capsys.readouterr().err
+
+
+def _no_raise():
+    import contextlib
+
+    return contextlib.nullcontext()

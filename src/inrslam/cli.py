@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import re
 import sys
@@ -109,7 +110,7 @@ def build_parser(registry_help: bool = True) -> argparse.ArgumentParser:
     e.add_argument("--gt", help="ground-truth trajectory (TUM format)")
     e.add_argument("--align", default=None, choices=["se3", "sim3", "none"],
                    help="ATE alignment (default: the run's eval.align for RUN_DIR, se3 for --traj)")
-    e.add_argument("--max-diff", type=float, default=None,
+    e.add_argument("--max-diff", type=_seconds, default=None,
                    help="timestamp association tolerance in seconds (default: the run's eval.max_time_diff for "
                         f"RUN_DIR, {TRAJ_MAX_DIFF} for --traj)")
     e.add_argument("--mesh", help="reconstructed mesh (PLY/OBJ)")
@@ -543,12 +544,7 @@ def _eval_command(args) -> int:
             raise InrslamError("inrslam eval: --mesh and --gt-mesh go together")
         intr = None
         if args.intrinsics:
-            vals = [float(x) for x in args.intrinsics.split(",")]
-            if len(vals) != 6:
-                raise InrslamError("--intrinsics expects fx,fy,cx,cy,width,height")
-            from inrslam.geometry.intrinsics import Intrinsics
-
-            intr = Intrinsics(vals[0], vals[1], vals[2], vals[3], int(vals[4]), int(vals[5]))
+            intr = _intrinsics_arg(args.intrinsics)
         metrics = ev.eval_mesh_files(args.mesh, args.gt_mesh, cameras_path=args.cameras, intrinsics=intr,
                                      icp=bool(args.icp), virtual_cameras=args.virtual_cameras, cull_gt=args.cull_gt)
     else:
@@ -558,6 +554,31 @@ def _eval_command(args) -> int:
     else:
         console.print(ev.format_table(metrics))
     return 0
+
+
+def _seconds(text: str) -> float:
+    """argparse type of a time tolerance: a finite number of seconds >= 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
+    return v
+
+
+def _intrinsics_arg(text: str):
+    """`Intrinsics` of `--intrinsics fx,fy,cx,cy,width,height`, or a one-line InrslamError saying what is wrong."""
+    from inrslam.geometry.intrinsics import Intrinsics
+
+    usage = f"--intrinsics expects fx,fy,cx,cy,width,height (numbers; width and height whole pixels), got {text!r}"
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise InrslamError(usage) from None
+    if len(vals) != 6 or not all(math.isfinite(v) for v in vals) or any(v != int(v) for v in vals[4:]):
+        raise InrslamError(usage)
+    return Intrinsics(vals[0], vals[1], vals[2], vals[3], int(vals[4]), int(vals[5])).checked("--intrinsics")
 
 
 def _run_eval_config(args):

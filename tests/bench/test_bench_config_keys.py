@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from inrslam.bench.spec import expand, load_spec, validate_runs
+from inrslam.bench.spec import SceneSpec, SweepSpec, expand, load_spec, validate_runs
 from inrslam.bench.sweep import config_differences, run_sweep
 from inrslam.config.loader import load_config
-from inrslam.errors import ConfigError
+from inrslam.errors import ConfigError, InrslamError
 
 FAKE = "inrslam.bench.testing:fake_run"
 OLD_PAPER = Path(__file__).parents[1] / "config" / "old_configs" / "paper_bb6d453.yaml"  # written at bb6d453
@@ -57,3 +57,19 @@ def test_sweep_resumes_run_directories_written_with_old_keys(tmp_path):
     (run_dir / "config.yaml").write_text(old.replace("  beta: 10.0\n", "  beta: 5.0\n"))
     with pytest.raises(ConfigError, match=r"different config \(render.density.beta: 5.0 -> 10.0\)"):
         run_sweep(spec, out, run_fn=FAKE, quiet=True, report=False)
+
+
+def test_an_unknown_executor_fails_before_a_dry_run_says_anything(tmp_path):
+    spec = {"encodings": ["dense"], "renders": ["density"], "scenes": ["builtin:room"], "presets": ["paper"]}
+    with pytest.raises(InrslamError, match=r"unknown executor 'foo' \(choices: local, ray, slurm\)"):
+        run_sweep(spec, tmp_path / "sweep", executor="foo", dry_run=True, quiet=True)
+    assert not (tmp_path / "sweep").exists()
+
+
+def test_sweep_spec_yaml_of_a_spec_made_in_code_runs_the_same_sweep(tmp_path):
+    sp = SweepSpec(encodings=["dense"], renders=["density", "direct"], presets=["quick"], seeds=[0, 2], max_frames=5,
+                   scenes=[SceneSpec("r", "builtin:room", {"data": {"stride": 2}})])
+    out = tmp_path / "sweep"
+    run_sweep(sp, out, run_fn=FAKE, quiet=True, report=False)
+    again = load_spec(out / "sweep_spec.yaml")
+    assert [r.to_dict() for r in expand(again)] == [r.to_dict() for r in expand(sp)]

@@ -178,3 +178,39 @@ def test_drift_column_averages_over_seeds_and_is_explained_where_missing(tmp_pat
     notes = dict(missing_notes(rows))
     assert notes["trajectory_gt.txt missing: no ATE/RPE"] == ("ATE [cm], Drift [cm/100 fr]: "
                                                                    "SDF(direct) / Sparse (hash) [accurate]")
+
+
+# files of a run written over with well-formed JSON / YAML of the wrong type (or bytes): the report reads them as empty
+WRONG_TYPES = {
+    "config_list": lambda d: (d / "config.yaml").write_text("- a\n- b\n"),
+    "config_data_str": lambda d: (d / "config.yaml").write_text("data: foo\nfield: {encoding: dense}\n"),
+    "bench_list": lambda d: (d / "bench.json").write_text("[1, 2]\n"),
+    "info_dataset_str": lambda d: ((d / "config.yaml").unlink(),
+                                   (d / "run_info.json").write_text('{"status": "complete", "dataset": "x"}')),
+    "align_bogus": lambda d: (d / "config.yaml").write_text("data: {path: builtin:room}\neval: {align: bogus}\n"),
+    "seed_str": lambda d: (d / "config.yaml").write_text("data: {path: builtin:room}\nseed: abc\n"),
+    "error_bytes": lambda d: (d / "error.txt").write_bytes(b"\xff\xfe\x00bad"),
+    "metric_bigint": lambda d: (d / "metrics.json").write_text('{"ate_rmse_m": 1' + "0" * 400 + "}"),
+}
+
+
+@pytest.mark.parametrize("status", ["[1]", '{"counts": [1, 2]}'])
+def test_report_reads_files_of_the_wrong_type_as_empty(tmp_path, status):
+    for k, (name, damage) in enumerate(WRONG_TYPES.items()):
+        damage(write_fake_run(tmp_path / "runs" / name, "dense", "direct", "room", k))
+    (tmp_path / "runs" / "sweep_status.json").write_text(status)
+    out = build_report(tmp_path / "runs", tmp_path / "report")
+    records = {r.name: r for r in collect_runs(tmp_path / "runs", exclude=out)}
+    assert set(records) == set(WRONG_TYPES)
+    assert records["seed_str"].seed is None and records["config_list"].seed is None
+    assert records["metric_bigint"].value(COLUMN_BY_KEY["ate_cm"]) is None
+    assert records["error_bytes"].error == "\ufffd\ufffd\x00bad"
+    assert ate_over_frames(records["align_bogus"].run_dir) is None
+    assert "metric_bigint" in (out / "index.html").read_text()
+
+
+def test_latex_escapes_every_special_character_once():
+    from inrslam.bench.leaderboard import _tex_escape
+
+    assert _tex_escape("a\\b") == r"a\textbackslash{}b"  # its braces are not escaped again
+    assert _tex_escape("x_1 & 50% #2 $y {z} ^ ~") == r"x\_1 \& 50\% \#2 \$y \{z\} \textasciicircum{} \textasciitilde{}"

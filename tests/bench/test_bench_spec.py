@@ -71,6 +71,15 @@ def test_sanitize_and_run_name():
     assert sanitize("hash+tri") == "hash-tri"
     assert sanitize("a b/c") == "a-b-c"
     assert run_name("room0", "dense+tri", "density", "paper", 3) == "room0__dense-tri__density__paper__s3"
+    assert sanitize(".hidden") == "hidden" and sanitize("..") == "x"  # run folders are never hidden
+
+
+def test_a_scene_given_as_the_current_folder_is_named_after_it(tmp_path, monkeypatch):
+    (tmp_path / "room0").mkdir()
+    monkeypatch.chdir(tmp_path / "room0")
+    for scene in (".", "./"):
+        spec = {**BASE, "encodings": ["dense"], "renders": ["density"], "scenes": [scene]}
+        assert [(r.scene, r.name.split("__")[0]) for r in expand(spec)] == [("room0", "room0")]
 
 
 def test_overrides_merge_order_dotted_keys_and_max_frames():

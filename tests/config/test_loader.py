@@ -133,3 +133,11 @@ def test_config_file_that_is_not_utf8_names_the_file(tmp_path):
     (tmp_path / "d.yaml").write_text("seed: !!int x\n")  # a tag its value cannot hold
     with pytest.raises(ConfigError, match=r"d\.yaml: invalid YAML: invalid literal for int"):
         load_config(tmp_path / "d.yaml")
+
+
+def test_yaml_syntax_errors_are_one_line_with_their_position(tmp_path):
+    (tmp_path / "c.yaml").write_text("seed: 1\ndata:\n  path: a: b\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(tmp_path / "c.yaml")
+    assert "\n" not in str(e.value)
+    assert str(e.value).endswith("c.yaml: invalid YAML: mapping values are not allowed here (line 3, column 10)")

@@ -11,7 +11,7 @@ import torch
 
 from inrslam.config import load_config
 from inrslam.datasets import open_dataset
-from inrslam.errors import RunError
+from inrslam.errors import InrslamError, RunError
 from inrslam.io.rundir import RunDir
 from inrslam.runner import resume_slam, run_slam
 from inrslam.runner.checkpoint import load_checkpoint, save_checkpoint
@@ -174,3 +174,16 @@ def test_a_really_full_disk_keeps_the_previous_checkpoint(small_disk):
         save_checkpoint(path, {**_state(), "model": {"w": torch.zeros(1_000_000, dtype=torch.float64)}})  # 8 MB
     assert "\n" not in str(e.value) and "--resume" in str(e.value)
     assert path.read_bytes() == before and [p.name for p in path.parent.iterdir()] == ["latest.pt"]
+
+
+@pytest.mark.parametrize("bad", ["data.path=/nonexistent/typo", "field.encoding=nope"])
+def test_an_overwrite_that_cannot_start_keeps_the_finished_run(tmp_path, bad):
+    out = tmp_path / "run"
+    out.mkdir()
+    kept = {"config.yaml": "seed: 0\n", "metrics.json": '{"ate_rmse_m": 0.01}', "trajectory.txt": "0 0 0 0 0 0 0 1\n"}
+    for name, text in kept.items():
+        (out / name).write_text(text)
+    assert RunDir(out).holds_run()
+    with pytest.raises(InrslamError):
+        run_slam(load_config(preset="quick", overrides=[bad]), out, overwrite=True)
+    assert {p.name: p.read_text() for p in out.iterdir()} == kept

@@ -12,8 +12,10 @@ import csv
 import io
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from inrslam.bench.spec import scene_short_name
 from inrslam.errors import ConfigError
@@ -94,10 +96,25 @@ class RunRecord:
 
     def value(self, col: Column) -> float | None:
         """The column's value for this run (scaled), or None when missing/non-finite."""
-        v = self.metrics.get(col.metric)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            return None
-        return float(v) * col.scale
+        v = number(self.metrics.get(col.metric))
+        return None if v is None else v * col.scale
+
+
+def number(v: Any) -> float | None:
+    """A metric's value as a finite float, or None (missing, not a number, a bool, non-finite, or an integer beyond
+    float's range)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    try:
+        f = float(v)
+    except OverflowError:
+        return None
+    return f if math.isfinite(f) else None
+
+
+def _mapping(x: Any) -> dict:
+    """x when it is a dict, else {} (a file or section of the wrong type reads as empty)."""
+    return x if isinstance(x, dict) else {}
 
 
 def _is_run_dir(d: Path) -> bool:
@@ -129,23 +146,24 @@ def read_run(run_dir: str | os.PathLike) -> RunRecord:
     """
     d = Path(run_dir)
     rd = RunDir(d)
-    metrics = rd.read_metrics() or {}
-    info = rd.read_run_info() or {}
-    bench = rd.read_json("bench") or {}
+    metrics, info, bench = (_mapping(x) for x in (rd.read_metrics(), rd.read_run_info(), rd.read_json("bench")))
     try:
-        config = load_yaml(rd.config) or {}
+        config = _mapping(load_yaml(rd.config)) if rd.config.is_file() else {}
     except ConfigError:
         config = {}
-    if not isinstance(config, dict):
-        config = {}
-    data_path = (config.get("data") or {}).get("path") or (info.get("dataset") or {}).get("root") or ""
+    data_path = (_mapping(config.get("data")).get("path") or _mapping(info.get("dataset")).get("root") or "")
     scene = bench.get("scene") or (scene_short_name(str(data_path)) if data_path else d.name)
-    encoding = metrics.get("encoding") or info.get("encoding") or (config.get("field") or {}).get("encoding") or "?"
-    render = metrics.get("render") or info.get("render") or (config.get("render") or {}).get("name") or "?"
+    encoding = metrics.get("encoding") or info.get("encoding") or _mapping(config.get("field")).get("encoding") or "?"
+    render = metrics.get("render") or info.get("render") or _mapping(config.get("render")).get("name") or "?"
     seed = bench.get("seed", config.get("seed"))
+    seed = seed if isinstance(seed, int) and not isinstance(seed, bool) else None  # a written-over file: no seed
     err = None
     if rd.error.is_file():
-        lines = [ln for ln in rd.error.read_text().splitlines() if ln.strip()]
+        try:
+            text = rd.error.read_text(errors="replace")
+        except OSError as e:
+            text = f"error.txt unreadable ({e})"
+        lines = [ln for ln in text.splitlines() if ln.strip()]
         err = lines[-1] if lines else "error"
     corrupt = rd.corrupt_files()
     complete = rd.is_complete() and not corrupt
@@ -340,11 +358,14 @@ def to_csv(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, scene: str | 
     return buf.getvalue()
 
 
+_TEX = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$", "{": r"\{",
+        "}": r"\}", "^": r"\textasciicircum{}", "~": r"\textasciitilde{}"}
+_TEX_SPECIAL = re.compile("|".join(re.escape(k) for k in _TEX))
+
+
 def _tex_escape(text: str) -> str:
-    for a, b in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#"),
-                 ("$", r"\$"), ("{", r"\{"), ("}", r"\}")):
-        text = text.replace(a, b)
-    return text
+    """LaTeX text for `text`, every special character replaced in one pass. Example: 'a_b\\c' -> 'a\_b\textbackslash{}c'."""
+    return _TEX_SPECIAL.sub(lambda m: _TEX[m.group()], text)
 
 
 def to_latex(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, caption: str | None = None) -> str:

@@ -29,6 +29,7 @@ from inrslam.bench.leaderboard import (
 )
 from inrslam.bench.spec import sanitize
 from inrslam.errors import ConfigError, DataError
+from inrslam.eval.config import Alignment
 from inrslam.eval.trajectory import associate, ate
 from inrslam.io.atomic import atomic_path
 from inrslam.io.rundir import RunDir
@@ -196,13 +197,17 @@ def ate_over_frames(run_dir: str | os.PathLike, align: str | None = None) -> tup
             cfg = load_yaml(RunDir(d).config) or {}
         except ConfigError:
             cfg = {}
-        if not isinstance(cfg, dict):
-            cfg = {}
-        align = str((cfg.get("eval") or {}).get("align") or "se3")
+        section = cfg.get("eval") if isinstance(cfg, dict) else None
+        align = str((section.get("align") if isinstance(section, dict) else None) or "se3")
+    if align not in {a.value for a in Alignment}:
+        return None  # a written-over config.yaml: no curve rather than a guess
     ia, ib = associate(ts_e, ts_g, max_diff=1e-3)
     if len(ia) < 3:
         return None
-    res = ate(est[ia], gt[ib], align=align)
+    try:
+        res = ate(est[ia], gt[ib], align=align)
+    except ValueError:  # e.g. Sim(3) of an estimate that never moves
+        return None
     return ia[res["used"]], np.asarray(res["errors"], dtype=np.float64)
 
 

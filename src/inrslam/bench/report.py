@@ -29,6 +29,7 @@ from inrslam.bench.leaderboard import (
     by_scene,
     collect_runs,
     encoding_label,
+    number,
     render_label,
     to_csv,
     to_html,
@@ -183,8 +184,8 @@ def _runs_table(out: Path, records: list[RunRecord]) -> str:
             "<th>renders/ (observed | rendered | depth | depth error)</th></tr>"]
     for r in records:
         pics = run_pictures(r)
-        ate = r.metrics.get("ate_rmse_m")
-        ate_text = f"{ate * 100:.2f}" if isinstance(ate, (int, float)) and not isinstance(ate, bool) else "–"
+        ate = number(r.metrics.get("ate_rmse_m"))
+        ate_text = "–" if ate is None else f"{ate * 100:.2f}"
         what = f"{encoding_label(r.encoding)} / {render_label(r.render)}, {r.scene}" + (
             f", seed {r.seed}" if r.seed is not None else "") + (f", {r.preset}" if r.preset else "")
         status = "" if r.complete else f"<br><span class='fail'>{html.escape(r.status)}</span>"
@@ -206,8 +207,9 @@ def _html(runs_dir: Path, out: Path, records, rows, scene_rows: dict, plots: dic
              " Track = ms per frame, Map = ms per mapping call; bold = best per column; – = not measured (the numbered"
              " notes under each table say why). <a href='#runs'>Each run's pictures</a> are at the end.</p>"]
     status = read_json(runs_dir / STATUS_FILE)
-    if status:
-        counts = ", ".join(f"{k} {v}" for k, v in (status.get("counts") or {}).items())
+    if isinstance(status, dict) and status:
+        counts = status.get("counts")
+        counts = ", ".join(f"{k} {v}" for k, v in counts.items()) if isinstance(counts, dict) else ""
         parts.append(f"<p>Sweep <code>{e(str(status.get('spec', '')))}</code>: state {e(str(status.get('state')))}"
                      f" ({e(counts)}).</p>")
     parts += ["<h2>All scenes</h2>", to_html(rows, COLUMNS),

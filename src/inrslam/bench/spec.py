@@ -162,10 +162,13 @@ def deep_merge(base: dict, new: dict) -> dict:
 
 
 def scene_short_name(path: str) -> str:
-    """'builtin:room' -> 'room'; '/data/Replica/room0/' -> 'room0'."""
+    """'builtin:room' -> 'room'; '/data/Replica/room0/' -> 'room0'; '.' -> the current folder's name."""
     if path.startswith("builtin:"):
         return path[len("builtin:"):]
-    return Path(path.rstrip("/\\")).name or path
+    name = Path(path.rstrip("/\\")).name
+    if name in ("", ".", ".."):  # a relative path that names no folder itself: the folder it resolves to
+        name = Path(path or ".").expanduser().resolve().name
+    return name or path
 
 
 def _scene(item: Any, source: str, i: int) -> SceneSpec:
@@ -235,8 +238,8 @@ def load_spec(spec: str | os.PathLike | dict | SweepSpec) -> SweepSpec:
 
 
 def sanitize(text: str) -> str:
-    """Make a string safe as (part of) a folder name: 'hash+tri' -> 'hash-tri'."""
-    return _UNSAFE.sub("-", text).strip("-") or "x"
+    """Make a string safe as (part of) a folder name, never hidden: 'hash+tri' -> 'hash-tri', '.x' -> 'x'."""
+    return _UNSAFE.sub("-", text).strip("-").lstrip(".") or "x"
 
 
 def run_name(scene: str, encoding: str, render: str, preset: str, seed: int) -> str:

@@ -12,16 +12,16 @@ checkpoint, the others start over.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import yaml
 
-from inrslam.bench.executors import ExecutorOptions, make_executor
-from inrslam.bench.spec import RunSpec, expand, load_spec, validate_runs
+from inrslam.bench.executors import EXECUTORS, ExecutorOptions, make_executor
+from inrslam.bench.spec import SPEC_KEYS, RunSpec, expand, load_spec, validate_runs
 from inrslam.bench.sweep_progress import SweepProgress
 from inrslam.bench.worker import fn_path
 from inrslam.errors import ConfigError
@@ -119,10 +119,16 @@ def _write_status(out: Path, res: SweepResult, meta: dict, state: str) -> None:
 
 
 def _save_spec(spec_arg, sp, out: Path) -> None:
-    if isinstance(spec_arg, (str, os.PathLike)) and Path(sp.source).is_file():
-        text = Path(sp.source).read_text()
+    """`sweep_spec.yaml`, which `inrslam bench OUT/sweep_spec.yaml` runs again: the spec file as written, the dict
+    as given, or a `SweepSpec` made in code as its validated fields (scene paths resolved)."""
+    if isinstance(spec_arg, dict):
+        data = spec_arg
+    elif Path(sp.source).is_file():
+        write_text(out / "sweep_spec.yaml", Path(sp.source).read_text())
+        return
     else:
-        text = yaml.safe_dump(spec_arg if isinstance(spec_arg, dict) else {"source": sp.source}, sort_keys=False)
+        data = {k: v for k, v in dataclasses.asdict(sp).items() if k in SPEC_KEYS and v not in ("", None)}
+    text = yaml.safe_dump(data, sort_keys=False)
     write_text(out / "sweep_spec.yaml", text)
 
 
@@ -157,6 +163,7 @@ def run_sweep(spec, out, jobs: int = 1, executor: str = "local", address: str | 
     out = Path(out)
     cfgs = validate_runs(runs, sp.source, check_paths=not dry_run, spec=sp) if validate else {}
     _check_existing(runs, cfgs, out)
+    EXECUTORS.get(executor)  # an unknown executor fails here, --dry-run included
     res = SweepResult(out=out, runs=runs, dry_run=dry_run)
     todo = []
     for run in runs:

@@ -45,4 +45,14 @@ def load_yaml(path: str | os.PathLike) -> Any:
     try:
         return parse_yaml(text)
     except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: invalid YAML: {e}") from None
+        raise ConfigError(f"{path}: invalid YAML: {yaml_error_line(e)}") from None
+
+
+def yaml_error_line(e: yaml.YAMLError) -> str:
+    """One line for a YAML error: its problem and where (1-based line and column), without PyYAML's multi-line
+    snippet. Example: "mapping values are not allowed here (line 3, column 8)"."""
+    if isinstance(e, yaml.MarkedYAMLError):
+        mark = e.problem_mark or e.context_mark
+        what = "; ".join(str(p) for p in (e.context, e.problem) if p) or type(e).__name__
+        return f"{what} (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else what
+    return " ".join(str(e).split())

@@ -43,14 +43,14 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, 
     rd = RunDir(out)
     if rd.holds_run() and not overwrite:
         raise ConfigError(f"{out} already holds a run: continue it with --resume {out}, or pass --overwrite")
-    if overwrite:
-        rd.clear()
     stage(log, f"opening the dataset {cfg.data.path}")
     dataset = open_dataset(cfg.data)
     threads = resolve_threads(cfg.threads or threads or 0)
     with thread_scope(threads), load_guard():
         stage(log, f"building the map: {cfg.field.encoding} x {cfg.render.name}, {len(dataset)} frames")
         system = system_class(cfg)(cfg, dataset)
+        if overwrite:  # only now: a run that cannot start (bad data, bad config) leaves the old one as it was
+            rd.clear()
         out.mkdir(parents=True, exist_ok=True)
         # the resolved config, with the thread count used: `--config` reproduces the run (docs/reliability.md)
         write_text(rd.config, dump_config(dataclasses.replace(cfg, threads=threads)))

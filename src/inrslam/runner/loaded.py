@@ -119,7 +119,9 @@ def load_run(run_dir: str | os.PathLike) -> LoadedRun:
     rel = _tum(rd.trajectory_relative)
     # on the estimate's timestamps (frames without GT: NaN), associated as the evaluation does
     gt_poses = associated_gt(ts, gt[0], gt[1], cfg.eval.max_time_diff) if gt is not None else None
-    kf = (rd.read_json("keyframes") or {}).get("keyframes", []) if rd.keyframes.is_file() else []
+    kf_file = rd.read_json("keyframes") if rd.keyframes.is_file() else None
+    kf = kf_file.get("keyframes") if isinstance(kf_file, dict) else None
+    kf = [k for k in kf if isinstance(k, int) and not isinstance(k, bool)] if isinstance(kf, list) else []
     return LoadedRun(root=rd.root, config=cfg, run_info=info, metrics=rd.read_metrics(), timestamps=ts, est=est,
                      gt=gt_poses,
                      relative=rel[1] if rel is not None else None, keyframes=list(kf), _rd=rd)
