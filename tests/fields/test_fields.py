@@ -299,3 +299,13 @@ def test_float64_field_gradcheck_on_fused_path():
     x = (torch.from_numpy(BOX[:, 0] + 0.1 + (BOX[:, 1] - BOX[:, 0] - 0.2) * np.random.default_rng(2).random((6, 3)))
          .requires_grad_())
     assert torch.autograd.gradcheck(lambda x: field.sdf(x), (x,), eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("encoding", ["dense", "hash", "dense+tri"])
+def test_faithful_grid_on_a_box_smaller_than_two_coarse_cells_is_a_config_error(encoding):
+    # the original's rule gives the coarsest level one cell per axis (scale 0): no grid to build
+    small = np.array([[0.0, 0.4], [0.0, 0.3], [0.0, 0.3]])
+    with pytest.raises(ConfigError, match=r"field.faithful=true: the scene box's longest side \(0.400 m\) is under "
+                                          r"twice the cell size \(0.24 m\)"):
+        build_field(FieldConfig(encoding=encoding, faithful=True), small)
+    assert build_field(FieldConfig(encoding=encoding, faithful=True, block_coarse=0.15), small) is not None

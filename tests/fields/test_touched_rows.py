@@ -134,3 +134,24 @@ def test_unknown_touched_rows_is_a_clear_error():
     layout = TableLayout.build(grid_entries(EXTENT, 0.3, 0.1, 1, False, 19, False))
     with pytest.raises(ValueError, match="touched rows 'all'"):
         multilinear(torch.rand(4, 3), torch.randn(layout.total_rows, 2), layout, "numba", touched="all")
+
+
+@pytest.mark.parametrize("backend,touched", [("torch", "read"), ("numba", "read"), ("numba", "gradient")])
+@pytest.mark.parametrize("sparse", [False, True])
+def test_an_empty_batch_of_points_reads_and_differentiates(backend, touched, sparse):
+    # a batch whose rays hit nothing (the EHE map before any voxel is allocated) has no sample points at all
+    layout = TableLayout.build(grid_entries(np.array([1.0, 1.0, 1.0]), 0.3, 0.1, 2, False, 19, False))
+    table = torch.randn(layout.total_rows, 2, requires_grad=True)
+    x = torch.rand(0, 3, requires_grad=True)
+    out = multilinear(x, table, layout, backend, sparse=sparse, touched=touched)
+    assert out.shape[0] == 0
+    out.sum().backward()
+    assert x.grad.shape == (0, 3) and not table.grad.to_dense().any()
+    enc = GridEncoder(np.array([1.0, 1.0, 1.0]), 0.3, 0.1, 2, 2, False, 19, False, 1e-4, backend)
+    assert enc(torch.rand(0, 3)).shape == (0, 4)
+
+
+def test_nonzero_points_of_no_points():
+    xn, g = np.zeros((0, 3)), np.zeros((0, 2, 2))
+    kept_x, kept_g = nonzero_points(xn, g)
+    assert kept_x.shape == (0, 3) and kept_g.shape == (0, 2, 2)

@@ -54,6 +54,40 @@ def test_se3_exp_smooth_at_zero_and_gradcheck():
     assert g[0, 5].item() == pytest.approx(-1.0)
 
 
+def _hat(xi):
+    """(6,) twist -> (4, 4) Lie-algebra matrix [[ [omega]x, rho ], [0, 0]]."""
+    M = torch.zeros(4, 4, dtype=xi.dtype)
+    M[:3, :3] = se3.skew(xi[3:])
+    M[:3, 3] = xi[:3]
+    return M
+
+
+@pytest.mark.parametrize("theta", [0.0, 1e-6, 9e-5, 1.01e-4, 1.5e-4, 3e-4, 1e-3, 1e-2, 0.1, 0.49, 0.51, 1.0, 3.0])
+def test_se3_exp_in_float32_is_accurate_to_float32_at_every_angle(theta):
+    # the closed forms (1 - cos)/θ² and (θ - sin)/θ³ lose every digit in float32 just above the float64 series'
+    # switch (θ = 1e-4): values were off by 1e-4 m and the twist's Jacobian by O(1) there
+    g = torch.Generator().manual_seed(int(theta * 1e6))
+    for _ in range(4):
+        axis = torch.randn(3, dtype=torch.float64, generator=g)
+        xi = torch.cat([torch.randn(3, dtype=torch.float64, generator=g), axis / axis.norm() * theta])
+        exact = torch.linalg.matrix_exp(_hat(xi))
+        assert (se3.se3_exp(xi.float()).double() - exact).abs().max() < 2e-6
+        J32 = torch.autograd.functional.jacobian(se3.se3_exp, xi.float()).double()
+        J64 = torch.autograd.functional.jacobian(se3.se3_exp, xi)
+        assert (J32 - J64).abs().max() < 2e-6
+        assert (se3.so3_exp(xi[3:].float()).double() - exact[:3, :3]).abs().max() < 1e-6
+
+
+def test_se3_exp_float64_matches_the_matrix_exponential():
+    torch.manual_seed(1)
+    for theta in (0.0, 1e-9, 1e-5, 1e-4, 1e-2, 1.0, 3.0):
+        axis = torch.randn(3, dtype=torch.float64)
+        xi = torch.cat([torch.randn(3, dtype=torch.float64), axis / axis.norm() * theta])
+        # 1e-12: at θ = 1e-4, just above the series, 1 - cos θ keeps 8 of its 16 digits (float64 is left as it was:
+        # the photometric alignment's poses depend on its bits)
+        assert torch.allclose(se3.se3_exp(xi), torch.linalg.matrix_exp(_hat(xi)), atol=1e-12, rtol=0)
+
+
 def test_quat_to_matrix_gradcheck():
     q = torch.randn(4, 4, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(se3.quat_to_matrix, (q,))

@@ -57,3 +57,27 @@ def test_window_takes_greedy_coverage_first_then_random_keyframes():
     assert select_window(cur, kfs[:3], window=4, random_fraction=0.5, generator=g) == [0, 1, 2]
     all_random = select_window(cur, kfs, window=4, random_fraction=1.0, generator=g)
     assert len(set(all_random)) == 4
+
+
+def test_a_first_frame_without_depth_maps_nothing_and_the_next_frames_go_on():
+    """A sensor warming up: frame 0 has no valid depth, so no voxel is allocated and every ray misses; mapping runs
+    on no samples (zero losses), logs no PSNR, and frame 1 allocates and maps as usual."""
+    import dataclasses
+
+    import numpy as np
+
+    from inrslam.config import load_config
+    from inrslam.datasets import open_dataset
+    from inrslam.slam.systems import system_class
+
+    cfg = load_config(preset="ehe", overrides=["data.max_frames=2", "data.builtin.width=96", "data.builtin.height=72",
+                                               "ehe.min_points=2", "ehe.first_iters=2", "ehe.iters=2", "ehe.rays=256",
+                                               "mesh.enabled=false", "eval.enabled=false"])
+    ds = open_dataset(cfg.data)
+    system = system_class(cfg)(cfg, ds)
+    blank = dataclasses.replace(ds[0], depth=np.zeros_like(ds[0].depth))
+    (map0,) = [r for r in system.process(0, blank) if r["type"] == "map"]
+    assert system.field.voxels.n_allocated == 0
+    assert map0["loss"] == 0.0 and map0["psnr"] is None and map0["voxels"] == 0
+    (map1,) = [r for r in system.process(1, ds[1]) if r["type"] == "map"]
+    assert map1["voxels"] > 0 and map1["loss"] > 0 and map1["psnr"] > 10

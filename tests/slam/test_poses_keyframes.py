@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 from inrslam.geometry.se3 import compose_qt, matrix_to_quat, se3_exp
 from inrslam.slam.config import PoseParam
 from inrslam.slam.keyframes import KeyframeStore
-from inrslam.slam.poses import PoseSet, constant_velocity, ray_poses, relative_trajectory
+from inrslam.slam.poses import PoseSet, constant_velocity, ray_poses, relative_pose, relative_trajectory
 
 
 def random_poses(n, seed=0):
@@ -114,6 +114,23 @@ def test_relative_trajectory_carries_non_keyframes_with_their_refined_keyframe()
         assert np.allclose(np.linalg.inv(out[k]) @ out[i], np.linalg.inv(tracked[k]) @ tracked[i])
     # without refinement the relative trajectory is the absolute one
     assert np.allclose(relative_trajectory(tracked, rel, rel_kf, [0, 3]), tracked)
+
+
+def test_relative_trajectory_in_the_original_form_applies_the_correction_in_the_frames_own_camera():
+    """Keyframe 0 at the origin, frame 1 one metre along x; bundle adjustment turns the keyframe by 90 degrees about
+    z. Held rigid (inrslam), frame 1 swings round to (0, 1, 0); in the original form (Co-SLAM), rel = c2w_1 c2w_0^-1
+    is a pure translation, so frame 1 stays at (1, 0, 0) and only turns."""
+    kf, frame = np.eye(4), np.eye(4)
+    frame[0, 3] = 1.0
+    turned = np.eye(4)
+    turned[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    tracked = np.stack([kf, frame])
+    for faithful, centre in ((False, [0.0, 1.0, 0.0]), (True, [1.0, 0.0, 0.0])):
+        rel = np.stack([np.eye(4), relative_pose(torch.from_numpy(kf), torch.from_numpy(frame), faithful).numpy()])
+        out = relative_trajectory(np.stack([turned, frame]), rel, np.array([-1, 0]), [0], faithful)
+        np.testing.assert_allclose(out[1][:3, 3], centre, atol=1e-12)
+        np.testing.assert_allclose(out[1][:3, :3], turned[:3, :3], atol=1e-12)  # the frame turns with it either way
+        assert np.allclose(relative_trajectory(tracked, rel, np.array([-1, 0]), [0], faithful), tracked)
 
 
 def test_ray_poses_gradient_is_the_same_on_every_run():

@@ -42,5 +42,6 @@ FAITHFUL_LAYER = {
     "sampling": {"band": 1.5},  # surface samples in +-1.5 T
     "loss": {"reduction": "global"},  # one mean over all masked samples of the batch
     "data": {"faithful_intrinsics": True},  # floor-divided default intrinsics
-    "slam": {"eval_final_pose": False},  # best of the evaluated poses only, final update never evaluated
+    "slam": {"eval_final_pose": False,  # best of the evaluated poses only, final update never evaluated
+             "faithful_relative": True},  # trajectory_relative.txt composed as Co-SLAM does
 }

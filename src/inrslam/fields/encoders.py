@@ -50,7 +50,7 @@ class GridEncoder(TableEncoder):
         nn.init.uniform_(self.table, -init, init)
 
     def forward(self, p: torch.Tensor) -> torch.Tensor:
-        return self.lookup(p).reshape(p.shape[0], -1)
+        return self.lookup(p).reshape(p.shape[0], self.out_dim)  # (0, L·F) for no points, too
 
 
 class TriPlaneEncoder(TableEncoder):

@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from inrslam.errors import ConfigError
+
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))  # xy, xz, yz
 LINE_AXES = (2, 1, 0)  # the axis each plane leaves out: z, y, x (VM pairing P_xy⊙ℓ_z, P_xz⊙ℓ_y, P_yz⊙ℓ_x)
 
@@ -45,6 +47,10 @@ def grid_entries(extent: np.ndarray, coarse: float, fine: float, levels: int, ha
     if faithful:
         n0 = max(1, max(math.floor(e / coarse) for e in extent))
         nf = max(1, max(math.floor(e / fine) for e in extent))
+        if min(n0, nf) < 2:  # base resolution 1: the original's level has scale 0 (every point reads one cell)
+            raise ConfigError(f"field.faithful=true: the scene box's longest side ({max(extent):.3f} m) is under twice "
+                              f"the cell size ({coarse if n0 < 2 else fine} m), so the original's grid rule gives a "
+                              "level without cells; use a smaller field.block_coarse / block_fine or faithful=false")
         scales = [nf - 1.0] if levels == 1 else [n0 * (nf / n0) ** (l / (levels - 1)) - 1.0 for l in range(levels)]
         for s in scales:
             r = max(2, math.ceil(s) + 1)

@@ -62,13 +62,34 @@ def skew(v: Tensor) -> Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(v.shape[:-1] + (3, 3))
 
 
+def _one_minus_cos_over_theta2(theta2: Tensor, theta: Tensor) -> Tensor:
+    """(1 - cos θ) / θ², smooth at 0. float64: a Taylor series below θ = 1e-4, the formula above. Other dtypes: the
+    cancellation-free 0.5 (sin(θ/2) / (θ/2))² (in float32, 1 - cos θ loses every digit near θ = 1e-4: the formula
+    gave 0 instead of 0.5 at θ = 1.5e-4)."""
+    if theta2.dtype == torch.float64:
+        return torch.where(theta2 < 1e-8, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
+    half = 0.5 * theta
+    sinc_half = torch.where(theta2 < 1e-8, 1 - theta2 / 24, torch.sin(half) / half)
+    return 0.5 * sinc_half * sinc_half
+
+
+def _theta_minus_sin_over_theta3(theta2: Tensor, theta: Tensor) -> Tensor:
+    """(θ - sin θ) / θ³, smooth at 0. float64: a Taylor series below θ = 1e-4. Other dtypes: the series to θ⁴ below
+    θ = 0.5 (its truncation error, θ⁶ / 362880, is below float32's resolution there), the formula above."""
+    if theta2.dtype == torch.float64:
+        return torch.where(theta2 < 1e-8, 1.0 / 6 - theta2 / 120,
+                           (theta - torch.sin(theta)) / (theta2 * theta).clamp_min(1e-36))
+    series = 1.0 / 6 - theta2 / 120 + theta2 * theta2 / 5040
+    return torch.where(theta2 < 0.25, series, (theta - torch.sin(theta)) / (theta2 * theta).clamp_min(1e-36))
+
+
 def so3_exp(omega: Tensor) -> Tensor:
     """(..., 3) axis-angle -> (..., 3, 3) rotation (Rodrigues), smooth at 0 via Taylor series."""
     theta2 = (omega * omega).sum(-1, keepdim=True)[..., None]
     theta = theta2.clamp_min(1e-24).sqrt()
     small = theta2 < 1e-8
     a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
+    b = _one_minus_cos_over_theta2(theta2, theta)
     K = skew(omega)
     eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand(K.shape)
     return eye + a * K + b * (K @ K)
@@ -82,9 +103,8 @@ def se3_exp(xi: Tensor) -> Tensor:
     rho, omega = xi[..., :3], xi[..., 3:]
     theta2 = (omega * omega).sum(-1, keepdim=True)[..., None]
     theta = theta2.clamp_min(1e-24).sqrt()
-    small = theta2 < 1e-8
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
-    c = torch.where(small, 1.0 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (theta2 * theta).clamp_min(1e-36))
+    b = _one_minus_cos_over_theta2(theta2, theta)
+    c = _theta_minus_sin_over_theta3(theta2, theta)
     K = skew(omega)
     eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand(K.shape)
     R = so3_exp(omega)

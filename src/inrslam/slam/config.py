@@ -205,6 +205,8 @@ class SlamConfig:
     track_edge: int = 20  # pixels ignored at the image border during tracking
     keep_best_pose: bool = True  # keep the lowest-loss evaluated pose (False: the last evaluated pose)
     eval_final_pose: bool = True  # also evaluate the pose after the final update (the original never did)
+    faithful_relative: bool = False  # trajectory_relative.txt as the original (Co-SLAM) composes it, c2w_t c2w_k^-1
+    # c2w'_k, not c2w'_k c2w_k^-1 c2w_t (the frame held rigid to its bundle-adjusted keyframe; docs/differences.md)
     pose_param: PoseParam = PoseParam.QUAT  # pose parameterisation for tracking and BA
     const_velocity: bool = True  # constant-velocity motion prediction
     init: PoseInit = PoseInit.CONST_VELOCITY  # tracking's starting pose: prediction, or GICP onto the previous frame

@@ -57,15 +57,23 @@ def constant_velocity(prev: Tensor, prev2: Tensor | None) -> Tensor:
     return prev @ torch.linalg.inv(prev2) @ prev
 
 
-def relative_trajectory(est: np.ndarray, rel: np.ndarray, rel_kf: np.ndarray, keyframes) -> np.ndarray:
-    """The "relative" trajectory of docs/spec.md §7.6 (Co-SLAM's): keyframes keep their (bundle-adjusted) pose; every
-    other
-    frame i with a reference rel_kf[i] >= 0 becomes est[rel_kf[i]] @ rel[i], its tracked pose relative to that
-    keyframe carried along by the keyframe's refinement. est, rel (N,4,4) c2w; rel_kf (N,) int; returns (N,4,4)."""
+def relative_pose(c2w_kf: torch.Tensor, c2w: torch.Tensor, faithful: bool = False) -> torch.Tensor:
+    """A frame's pose `c2w` (4, 4) relative to its keyframe's `c2w_kf` (4, 4), as `relative_trajectory` composes it:
+    c2w_kf^-1 c2w (in the keyframe's camera), or with `faithful` the original's c2w c2w_kf^-1 (in the world)."""
+    return c2w @ torch.linalg.inv(c2w_kf) if faithful else torch.linalg.inv(c2w_kf) @ c2w
+
+
+def relative_trajectory(est: np.ndarray, rel: np.ndarray, rel_kf: np.ndarray, keyframes,
+                        faithful: bool = False) -> np.ndarray:
+    """The "relative" trajectory of docs/spec.md §7.6: keyframes keep their (bundle-adjusted) pose; every other frame
+    i with a reference rel_kf[i] >= 0 is carried along by that keyframe's refinement: est[k] @ rel[i], its pose held
+    rigid to the keyframe (rel = `relative_pose`), or with `faithful` the original's (Co-SLAM's) rel[i] @ est[k]
+    (rel = c2w_i c2w_k^-1: the keyframe's correction applied in frame i's own camera, so a rotation turns the frame
+    about itself instead of about the keyframe). est, rel (N,4,4) c2w; rel_kf (N,) int; returns (N,4,4)."""
     out = est.copy()
     kfs = set(int(k) for k in keyframes)
     for i in range(est.shape[0]):
         k = int(rel_kf[i])
         if i not in kfs and k >= 0 and np.isfinite(rel[i]).all():
-            out[i] = est[k] @ rel[i]
+            out[i] = rel[i] @ est[k] if faithful else est[k] @ rel[i]
     return out

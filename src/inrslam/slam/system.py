@@ -39,7 +39,7 @@ from inrslam.slam.mapping import initialise, map_frame, refit
 from inrslam.slam.mesh_extraction import extract_mesh
 from inrslam.slam.model import ModelConfig, SceneModel
 from inrslam.slam.photometric import PhotoLevel, align_photometric, grey, jump_kept, step_bound
-from inrslam.slam.poses import constant_velocity, relative_trajectory
+from inrslam.slam.poses import constant_velocity, relative_pose, relative_trajectory
 from inrslam.slam.registration import (
     PreparedCloud,
     depth_noise,
@@ -295,7 +295,7 @@ class SlamSystem:
         """Frame i's pose, and the same pose relative to the last keyframe (docs/spec.md §7.6)."""
         self.est[i] = c2w
         kf = self.store.frame_ids[-1]
-        self.state.rel[i] = torch.linalg.inv(self.est[kf]) @ c2w
+        self.state.rel[i] = relative_pose(self.est[kf], c2w, self.cfg.slam.faithful_relative)
         self.state.rel_kf[i] = kf
 
     def _place_given(self, i: int, ft: FrameTensors) -> None:
@@ -748,7 +748,8 @@ class SlamSystem:
         """Trajectories, keyframes and process metrics of the frames processed so far."""
         s = self.state
         est = s.est.double().cpu().numpy()
-        rel = relative_trajectory(est, s.rel.double().cpu().numpy(), s.rel_kf, s.store.frame_ids)
+        rel = relative_trajectory(est, s.rel.double().cpu().numpy(), s.rel_kf, s.store.frame_ids,
+                                  self.cfg.slam.faithful_relative)
         return SlamResult(est=est, relative=rel, gt=s.gt, timestamps=s.timestamps, keyframes=list(s.store.frame_ids),
                           metrics=self.process_metrics())
 

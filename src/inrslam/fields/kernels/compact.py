@@ -42,6 +42,8 @@ def nonzero_points(xn: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarra
     Args: xn (N, 3) points (any float dtype), g (N, ...) their output gradient. Returns C-contiguous copies
     (the inputs themselves when every point is kept)."""
     N = g.shape[0]
+    if N == 0:
+        return xn, g  # nothing to keep (and numpy cannot infer the -1 of an empty reshape)
     g2 = g.reshape(N, -1)
     xn_out = np.empty_like(xn)
     g_out = np.empty_like(g2)

@@ -155,15 +155,17 @@ class EheSystem(SlamSystem):
     def _record(self, i: int, ms: float, res: MapResult, window: list[int], new: int, accepted: int,
                 depth: dict) -> None:
         s = self.state
-        s.proc_psnr += [p for p in res.psnr if np.isfinite(p)]
-        s.proc_depth_l1 += [d for d in res.depth_l1 if np.isfinite(d)]
+        psnr = [p for p in res.psnr if np.isfinite(p)]  # none finite: nothing was rendered (no voxel yet)
+        depth_l1 = [d for d in res.depth_l1 if np.isfinite(d)]
+        s.proc_psnr += psnr
+        s.proc_depth_l1 += depth_l1
         if res.skipped:
             self._event(i, f"nan_loss_x{res.skipped}")
         vg = self.field.voxels
         self._log({"type": "map", "frame": i, "map_ms": ms, "iters": res.iters, "keyframes": len(window),
                    "loss": res.losses[-1] if res.losses else None,
-                   "psnr": float(np.nanmean(res.psnr)) if res.psnr else None,
-                   "depth_l1": float(np.nanmean(res.depth_l1)) if res.depth_l1 else None,
+                   "psnr": float(np.mean(psnr)) if psnr else None,
+                   "depth_l1": float(np.mean(depth_l1)) if depth_l1 else None,
                    "voxels": vg.n_allocated, "new_voxels": new, "priors_accepted": accepted, **depth})
 
     def _add_keyframe(self, i: int, ft: FrameTensors) -> None:
