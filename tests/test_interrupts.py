@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import signal
 import sys
+import time
 
 import pytest
 
-from inrslam.interrupts import _handler, defer_sigint_in_jit, in_jit
+from inrslam.interrupts import _handler, _Retry, defer_sigint_in_jit, in_jit
 
 
 def frame_in(module: str):
@@ -33,8 +34,8 @@ def test_handler_raises_outside_and_retries_inside_the_compiler():
         assert signal.getitimer(signal.ITIMER_REAL)[0] > 0  # ... a retry is armed
         assert signal.getsignal(signal.SIGALRM) is _handler
     finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
+        _Retry.disarm()
+    assert signal.getsignal(signal.SIGALRM) is previous and signal.getitimer(signal.ITIMER_REAL)[0] == 0
 
 
 def test_the_block_restores_the_default_and_leaves_an_ignored_sigint_alone():
@@ -50,3 +51,44 @@ def test_the_block_restores_the_default_and_leaves_an_ignored_sigint_alone():
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, inherited)
+
+
+@pytest.fixture
+def default_sigint():
+    inherited, alarm = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGALRM)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.setitimer(signal.ITIMER_REAL, 0)
+    signal.signal(signal.SIGINT, inherited)
+    signal.signal(signal.SIGALRM, alarm)
+
+
+def compiling_when_ctrl_c_arrives():
+    """A function of a numba-named module that receives a Ctrl-C while it runs."""
+    ns = {"__name__": "numba.core.fake", "signal": signal}
+    exec("def compile_():\n    signal.raise_signal(signal.SIGINT)\n", ns)
+    return ns["compile_"]
+
+
+def test_the_callers_alarm_handler_and_timer_are_left_alone(default_sigint):
+    fired = []
+    signal.signal(signal.SIGALRM, lambda signum, frame: fired.append(signum))
+    signal.setitimer(signal.ITIMER_REAL, 30.0)
+    with defer_sigint_in_jit():
+        pass
+    assert 29.0 < signal.getitimer(signal.ITIMER_REAL)[0] <= 30.0  # a watchdog's timer keeps running
+    with pytest.raises(KeyboardInterrupt):  # a Ctrl-C put off in the compiler borrows SIGALRM, then gives it back
+        with defer_sigint_in_jit():
+            compiling_when_ctrl_c_arrives()()
+            time.sleep(0.2)
+    assert 28.0 < signal.getitimer(signal.ITIMER_REAL)[0] < 30.0
+    signal.setitimer(signal.ITIMER_REAL, 0.01)
+    time.sleep(0.1)
+    assert fired == [signal.SIGALRM]  # the caller's own handler, not a KeyboardInterrupt
+
+
+def test_a_ctrl_c_put_off_at_the_end_of_the_block_is_raised_when_it_ends(default_sigint):
+    with pytest.raises(KeyboardInterrupt):
+        with defer_sigint_in_jit():
+            compiling_when_ctrl_c_arrives()()  # the block ends before the 50 ms retry
+    assert not _Retry.pending and signal.getitimer(signal.ITIMER_REAL)[0] == 0

@@ -22,7 +22,7 @@ LIBGOMP = sys.platform.startswith("linux") and omp_env._torch_runtime_is_libgomp
 
 
 def probe(pre: str = "", **env: str) -> list:
-    e = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "INRSLAM_OMP_WAIT")} | env
+    e = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "INRSLAM_OMP_WAIT", omp_env.MARK)} | env
     out = subprocess.run([sys.executable, "-c", PROBE.format(pre=pre)], env=e, capture_output=True, text=True,
                          check=True).stdout
     return json.loads(out)
@@ -44,6 +44,14 @@ def test_passive_on_request():
 def test_a_users_policy_is_kept_and_not_adapted():
     env, info = probe(OMP_WAIT_POLICY="ACTIVE")
     assert env == "ACTIVE" and info["policy"] == "ACTIVE" and info["set_by"] == "user" and not info["adaptive"]
+
+
+def test_a_child_that_inherits_inrslams_own_policy_says_inrslam_set_it():
+    # a sweep worker spawned by a process where inrslam set OMP_WAIT_POLICY inherits it with inrslam's mark
+    env, info = probe(OMP_WAIT_POLICY="PASSIVE", **{omp_env.MARK: "PASSIVE"})
+    assert env == "PASSIVE" and info["set_by"] == "inrslam"
+    env, info = probe(OMP_WAIT_POLICY="ACTIVE", **{omp_env.MARK: "PASSIVE"})  # the user changed it since
+    assert env == "ACTIVE" and info["set_by"] == "user"
 
 
 def test_torch_loaded_first_keeps_the_runtime_default_says_so_and_adapts_it_on_libgomp():

@@ -297,3 +297,11 @@ def test_the_page_renders_in_a_headless_browser(viewer, tmp_path):
     assert img.shape[:2] == (700, 1000)
     assert img.reshape(-1, 3).std(axis=0).max() > 10 and len(np.unique(img.reshape(-1, 3), axis=0)) > 50  # not blank
     assert not page.errors, page.errors
+
+
+def test_the_printed_url_brackets_an_ipv6_host():
+    from inrslam.viewer.server import url_lines
+
+    assert url_lines("::1", 8080)[0] == "viewer: http://[::1]:8080"
+    assert url_lines("127.0.0.1", 8080)[0] == "viewer: http://127.0.0.1:8080"
+    assert url_lines("0.0.0.0", 8080)[0] == "viewer: http://localhost:8080"

@@ -48,6 +48,8 @@ OPT_OUT = "INRSLAM_OMP_WAIT"  # "runtime": spin, then sleep; "passive": always s
 CHOICES = ("adaptive", "passive", "runtime")
 DEFAULT = "PASSIVE"
 _origin = "unset"
+MARK = "INRSLAM_OMP_WAIT_SET"  # the OMP_WAIT_POLICY value inrslam itself set, so that child processes (sweep workers)
+# that inherit the variable still say inrslam set it, not the user
 _adaptive = False  # runs adapt the wait to the load (`load_guard`)
 _always = False  # runs hold the throttle from start to end (passive asked for after torch loaded)
 
@@ -93,7 +95,8 @@ def apply_wait_policy() -> str:
     libgomp = _torch_runtime_is_libgomp() and not _omp_limits_set()
     _adaptive = _always = False
     if ENV in os.environ:
-        _origin = "user" if _origin != "inrslam" else _origin
+        mine = _origin == "inrslam" or os.environ.get(MARK) == os.environ[ENV]
+        _origin = "inrslam" if mine else "user"
     elif choice == "runtime":
         _origin = f"runtime default ({OPT_OUT}=runtime)"
     elif loaded and choice == "passive":
@@ -105,7 +108,7 @@ def apply_wait_policy() -> str:
     elif choice != "passive" and libgomp:
         _origin, _adaptive = "inrslam (adaptive)", True
     else:
-        os.environ[ENV] = DEFAULT
+        os.environ[ENV] = os.environ[MARK] = DEFAULT
         _origin = "inrslam"
     return _origin
 

@@ -346,3 +346,15 @@ def test_symmetric_scene_is_identical_under_quarter_turns():
     turned = mesh.vertices @ quarter.T
     # every turned vertex lies on the original geometry (the posters' thickness aside)
     assert distance_to_mesh(turned[:: max(1, len(turned) // 2000)], mesh, max_dist=0.1).max() < 0.02
+
+
+@pytest.mark.parametrize("key,value,message", [
+    ("seed", -1, "data.builtin.seed: expected an integer >= 0, got -1"),
+    ("width", -2, r"data.builtin.width: expected >= 0"),
+    ("motion_scale", 0.0, "data.builtin.motion_scale: expected > 0"),
+])
+def test_bad_scene_parameters_are_config_errors(key, value, message):
+    from inrslam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        store.render_params("room", SceneConfig(**{key: value}))

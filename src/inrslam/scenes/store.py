@@ -76,6 +76,8 @@ def render_params(name: str, cfg: SceneConfig) -> dict:
     for key in ("frames", "width", "height"):
         if getattr(cfg, key) < 0:
             raise ConfigError(f"data.builtin.{key}: expected >= 0 (0 = scene default), got {getattr(cfg, key)}")
+    if cfg.seed < 0:
+        raise ConfigError(f"data.builtin.seed: expected an integer >= 0, got {cfg.seed}")
     if cfg.motion_scale <= 0:
         raise ConfigError(f"data.builtin.motion_scale: expected > 0, got {cfg.motion_scale}")
     if cfg.missing_depth is not None and not 0.0 <= cfg.missing_depth < 1.0:

@@ -61,6 +61,8 @@ def stop_server(server) -> None:
 def url_lines(host: str, port: int) -> list[str]:
     """What to print for a user: the URL, and the SSH tunnel that reaches it from another machine."""
     shown = "localhost" if host in ("0.0.0.0", "::", "") else host
+    if ":" in shown and not shown.startswith("["):
+        shown = f"[{shown}]"  # an IPv6 address in a URL
     return [f"viewer: http://{shown}:{port}",
             f"viewer on a remote machine: ssh -L {port}:localhost:{port} {socket.gethostname()}, then open "
             f"http://localhost:{port}"]
