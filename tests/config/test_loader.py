@@ -141,3 +141,8 @@ def test_yaml_syntax_errors_are_one_line_with_their_position(tmp_path):
         load_config(tmp_path / "c.yaml")
     assert "\n" not in str(e.value)
     assert str(e.value).endswith("c.yaml: invalid YAML: mapping values are not allowed here (line 3, column 10)")
+
+
+def test_a_mapping_given_to_a_leaf_key_names_where_it_was_given():
+    with pytest.raises(ConfigError, match=r"config key 'data.path' in command-line overrides: expected a string"):
+        load_config(overrides=["data.path=/tmp/x: y"])

@@ -132,6 +132,7 @@ def _merge(base: dict, new: dict, sources: dict, source: str, prefix: str = "") 
         if isinstance(v, dict):
             prev = out.get(k)
             out[k] = _merge(prev if isinstance(prev, dict) else {}, v, sources, source, prefix=f"{full}.")
+            sources[full] = source  # a mapping given to a leaf key is reported where it was given
         else:
             out[k] = v
             sources[full] = source
