@@ -112,7 +112,7 @@ def test_faithful_switch_reaches_every_section():
     assert cfg.sampling.band == 1.5 and cfg.loss.reduction.value == "global"
     explicit = load_config(preset="paper", overrides=["faithful=true", "sampling.band=1.0", "loss.reduction=per_ray"])
     assert explicit.field.faithful and explicit.sampling.band == 1.0 and explicit.loss.reduction.value == "per_ray"
-    assert not cfg.slam.eval_final_pose and cfg.slam.faithful_relative
+    assert not cfg.slam.eval_final_pose and cfg.slam.faithful_relative and cfg.slam.max_pose_jump == 0
     default = load_config(preset="paper")
     assert not default.field.faithful and default.sampling.band == 1.0 and default.loss.reduction.value == "per_ray"
 

@@ -72,6 +72,15 @@ def test_replica_true_and_faithful_intrinsics(tmp_path, monkeypatch):
     assert (ds.intrinsics.cx, ds.intrinsics.cy) == (599.0, 339.0)
 
 
+def test_neuralrgbd_prefers_the_benchmarks_pre_culled_gt_mesh(tmp_path):
+    lay = make_neuralrgbd(tmp_path, n=3)
+    (lay.root / "gt_mesh.ply").write_text("ply\n")
+    cfg = DataConfig(intrinsics=[20.0, 20.0, 16.0, 12.0])
+    assert open_folder(lay.root, cfg).gt_mesh == lay.root / "gt_mesh.ply"
+    (lay.root / "gt_mesh_cull_virt_cams.ply").write_text("ply\n")
+    assert open_folder(lay.root, cfg).gt_mesh == lay.root / "gt_mesh_cull_virt_cams.ply"
+
+
 def test_neuralrgbd_opengl_converted_and_nan_invalid(tmp_path, monkeypatch):
     lay = make_neuralrgbd(tmp_path, n=3, nan_frame=1)
     ds = open_folder(lay.root, DataConfig(intrinsics=[20.0, 20.0, 16.0, 12.0]))

@@ -66,6 +66,8 @@ def test_tracking_rejects_pose_jumps_and_nan():
     cfg = SlamConfig(track_iters=30, track_lr=0.5)
     res = track_frame(model, torch.eye(4), *rays(4, 0), cfg, None, max_jump=0.5)
     assert res.fallback == "pose_jump" and torch.equal(res.c2w, torch.eye(4))
+    far = track_frame(StubModel(torch.tensor([[5.0, 0.0, 0.0]])), torch.eye(4), *rays(4, 0), cfg, None, max_jump=0.0)
+    assert far.fallback is None and far.c2w[0, 3] > 0.5  # 0: never rejected (the original's behaviour)
     nan_model = StubModel(torch.tensor([[float("nan"), 0.0, 0.0]]))
     res = track_frame(nan_model, torch.eye(4), *rays(4, 0), cfg, None, max_jump=0.5)
     assert res.fallback == "nan_loss" and torch.equal(res.c2w, torch.eye(4))

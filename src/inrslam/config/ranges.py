@@ -64,7 +64,7 @@ RANGES: dict[str, Rule] = {
     "slam.map_pixels": COUNT, "slam.map_current_min": NONNEG, "slam.map_lr": POS, "slam.ba_lr": POS,
     "slam.ba_pose_every": COUNT, "slam.keyframe_fraction": between(0.0, 1.0, open_lo=True),
     "slam.keyframe_edge_fraction": between(0.0, 1.0), "slam.keyframe_edge_jump": POS,
-    "slam.max_pose_jump": POS, "slam.checkpoint_every": NONNEG, "slam.mesh_every": NONNEG,
+    "slam.max_pose_jump": NONNEG, "slam.checkpoint_every": NONNEG, "slam.mesh_every": NONNEG,
     "slam.poses_tolerance": NONNEG,
     "slam.gicp.downsample": POS, "slam.gicp.max_corr": POS, "slam.gicp.neighbors": COUNT,
     "slam.gicp.max_iterations": COUNT, "slam.gicp.eps_trans": POS, "slam.gicp.eps_rot": POS,

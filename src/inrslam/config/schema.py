@@ -43,5 +43,6 @@ FAITHFUL_LAYER = {
     "loss": {"reduction": "global"},  # one mean over all masked samples of the batch
     "data": {"faithful_intrinsics": True},  # floor-divided default intrinsics
     "slam": {"eval_final_pose": False,  # best of the evaluated poses only, final update never evaluated
-             "faithful_relative": True},  # trajectory_relative.txt composed as Co-SLAM does
+             "faithful_relative": True,  # trajectory_relative.txt composed as Co-SLAM does
+             "max_pose_jump": 0.0},  # a tracked pose is never rejected for moving far from the prediction
 }

@@ -6,6 +6,8 @@ Layout::
     <scene>/depth_filtered/depth0.png, ...        uint16 millimetres (noisy, filtered; the paper's choice)
     <scene>/poses.txt                             4 lines of 4 values per frame, c2w in **OpenGL** axes;
                                                   a pose containing 'nan' is invalid
+    <scene>/gt_mesh_cull_virt_cams.ply            the benchmark's ground-truth mesh, pre-culled with virtual cameras
+                                                  (Co-SLAM's evaluation data; optional, preferred when present)
     <scene>/gt_mesh.ply or mesh.ply               ground-truth mesh (optional)
 
 Camera: 640 x 480, fx = fy = 554.2562584220408, cx = 320, cy = 240 (the original floors f to 554:
@@ -75,7 +77,8 @@ class NeuralRGBDDataset(FolderDataset):
             poses.append((opengl_to_opencv(T) if ok else T, ok))
         self._set_numbered_frames(colour, depth, ids, poses, time_from_number=False)
         self.bounds = known_bounds(NEURALRGBD_BOUNDS, self.root.name)
-        self.gt_mesh = first_existing(
-            [self.root / "gt_mesh.ply", self.root / "mesh.ply", self.root.parent / f"{self.root.name}_mesh.ply"]
+        self.gt_mesh = first_existing(  # the benchmark's own GT: pre-culled with virtual cameras, when present
+            [self.root / "gt_mesh_cull_virt_cams.ply", self.root / "gt_mesh.ply", self.root / "mesh.ply",
+             self.root.parent / f"{self.root.name}_mesh.ply"]
         )
         return Intrinsics(FOCAL, FOCAL, 320.0, 240.0, 640, 480)

@@ -228,7 +228,8 @@ class SlamConfig:
     keyframe_edge_fraction: float = 0.0  # and up to this fraction of its pixels from depth edges (silhouettes) ...
     keyframe_edge_jump: float = 0.05  # ... pixels whose depth differs from a 4-neighbour's by more, metres
     keyframe_edge_near_only: bool = False  # ... only the near side of each edge (a pixel whose 8-neighbour is farther)
-    max_pose_jump: float = 0.5  # metres; a tracked pose moving more than this from the prediction is rejected
+    max_pose_jump: float = 0.5  # metres; a tracked pose moving more than this from the prediction is rejected (0 =
+    # never, as the original: docs/differences.md row 24)
     loop_closure: bool = False  # detect revisits, optimise the keyframe pose graph, re-fit the map (slam.loop)
     loop: LoopConfig = field(default_factory=LoopConfig)  # settings of loop closure
     refine: RefineConfig = field(default_factory=RefineConfig)  # a final pose graph of every frame (off)

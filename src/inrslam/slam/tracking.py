@@ -48,7 +48,7 @@ def track_frame(model: SceneModel, c2w_pred: Tensor, dirs_cam: Tensor, rgb: Tens
             frame's sampled rays (drawn once, reused every iteration).
         cfg: tracking settings (`track_iters`, `track_lr`, `pose_param`, `keep_best_pose`, `eval_final_pose`).
         generator: sample-jitter generator (None: the global one).
-        max_jump: metres; a best pose farther than this from the prediction is rejected.
+        max_jump: metres; a best pose farther than this from the prediction is rejected (0: never, the original).
     Returns: the chosen (4, 4) pose, its loss, the iterations run and the fallback taken, if any.
     """
     with frozen(model):
@@ -82,7 +82,7 @@ def _track(model: SceneModel, c2w_pred: Tensor, dirs_cam: Tensor, rgb: Tensor, d
         opt.step()
     if not math.isfinite(best_loss):
         return TrackResult(c2w_pred.detach().clone(), float("nan"), it, "nan_loss")
-    if float(torch.linalg.norm(best[:3, 3] - c2w_pred[:3, 3])) > max_jump:
+    if max_jump > 0 and float(torch.linalg.norm(best[:3, 3] - c2w_pred[:3, 3])) > max_jump:
         return TrackResult(c2w_pred.detach().clone(), best_loss, it, "pose_jump")
     # a NaN after some finite iterations keeps the best finite pose; the event is still reported
     return TrackResult(best, best_loss, it, fallback)
