@@ -151,3 +151,25 @@ def test_the_models_fused_loss_equals_its_torch_path():
     assert len(g_fused) == len(g_ref) == 6 and all(b.abs().max() > 0 for b in g_ref)  # priors, level, decoders
     for a, b in zip(g_fused, g_ref):
         assert torch.allclose(a, b, rtol=1e-3, atol=1e-6 * b.abs().max().item() + 1e-9)
+
+
+def test_reference_and_kernel_agree_on_samples_exactly_at_the_thresholds():
+    # float32 samples at z = D - T (front, not band) and at z = z_k + T (cut): the reference compares as the kernel
+    # does (thresholds in float64); in float32 alone z = D - T fell in neither set and the cut sample was dropped
+    from inrslam.slam.ehe.losses import ehe_losses
+    from inrslam.slam.ehe.rendering import EheRender
+
+    T = EheConfig().truncation
+    z = torch.tensor([1.0 - T, 0.99, 1.0, 1.01], dtype=torch.float32)
+    sdf = torch.tensor([3.0, 0.2, 0.0, -0.2], dtype=torch.float32)
+    depth, rgb = torch.tensor([1.0]), torch.zeros(1, 3)
+    ray, start = torch.zeros(4, dtype=torch.long), torch.tensor([0, 4])
+    w = packed_direct_weights(sdf, z, ray, 1, T)
+    out = EheRender(torch.zeros(1, 3), (w * z).sum()[None], torch.tensor([True]), sdf, z, ray, w, start)
+    ref = ehe_losses(out, rgb, depth, EheConfig())
+    terms, _ = fused_losses(sdf, torch.zeros(0, 3), z, start, torch.full((4,), -1), rgb, depth, torch.tensor([True]), T)
+    assert ref["free_space"].item() == pytest.approx(terms[2].item(), rel=1e-6) and terms[2].item() > 0
+    z2 = torch.tensor([0.99, 1.0, 1.0 + T, 1.05], dtype=torch.float32)  # z_k = 1.0: the third sample at z_k + T
+    s2 = torch.tensor([0.5, 0.01, -0.01, -0.012], dtype=torch.float32)
+    torch.testing.assert_close(packed_direct_weights(s2, z2, torch.zeros(4, dtype=torch.long), 1, T),
+                               fused_weights(s2, z2, torch.tensor([0, 4]), T))

@@ -27,8 +27,10 @@ def packed_sdf_terms(sdf: Tensor, z: Tensor, ray: Tensor, depth: Tensor, has_dep
     """
     D = depth[ray]
     sup = has_depth[ray]
-    front = sup & (z < D - truncation)
-    band = sup & ((z - D).abs() <= truncation)
+    # compared as the fused kernel does (`fused_loss`): D - T in float64, |z - D| in z's dtype against T in float64,
+    # and a sample in front is not also in the band (float32 thresholds alone leave a 1-ulp gap at z = D - T)
+    front = sup & (z.double() < D.double() - truncation)
+    band = sup & ~front & ((z - D).abs().double() <= truncation)
     n_f, n_b, n = front.sum(), band.sum(), sup.sum()
     if int(n) == 0 or int(n_f + n_b) == 0:
         zero = sdf.new_zeros(()) * sdf.sum()

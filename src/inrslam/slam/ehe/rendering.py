@@ -71,7 +71,7 @@ def packed_direct_weights(sdf: Tensor, z: Tensor, ray: Tensor, n_rays: int, trun
     first = torch.full((n_rays,), N, dtype=torch.int64, device=sdf.device)
     first = first.scatter_reduce(0, ray[j], j, "amin")  # N: no crossing
     z_k = torch.cat([z, z.new_full((1,), float("inf"))])[first]  # inf: keep every sample
-    w = bell_weights(sdf, truncation) * (z < z_k[ray] + truncation)
+    w = bell_weights(sdf, truncation) * (z.double() < z_k[ray].double() + truncation)  # z_k + T in float64 (kernel)
     total = torch.zeros(n_rays, dtype=w.dtype, device=w.device).index_add(0, ray, w)
     return w / (total[ray] + 1e-8)
 
