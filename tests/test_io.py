@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from inrslam.errors import DataError
 from inrslam.io.atomic import append_jsonl, atomic_path, write_json, write_text
-from inrslam.io.trajectory import read_tum, write_tum
+from inrslam.io.trajectory import quat_rotation, read_tum, write_tum
 
 
 def _current_umask() -> int:
@@ -120,6 +120,19 @@ def test_read_tum_errors_name_file_and_line(tmp_path, body, match):
     p.write_text("# timestamp tx ty tz qx qy qz qw\n" + body)
     with pytest.raises(DataError, match=match):
         read_tum(p)
+
+
+def test_quat_rotation_is_q_over_its_norm_bit_for_bit_and_survives_overflow():
+    """Ordinary quaternions give exactly scipy's rotation of q / |q| (the metrics of earlier runs stay the same bits);
+    only a norm that overflows is scaled first."""
+    rng = np.random.default_rng()
+    for q in np.round(rng.normal(size=(500, 4)), 4):
+        assert np.array_equal(quat_rotation(q, "f"), Rotation.from_quat(q / np.linalg.norm(q)).as_matrix())
+    half = np.sqrt(0.5)
+    np.testing.assert_allclose(quat_rotation(np.array([0.0, 0.0, 1e300, 1e300]), "f"),
+                               Rotation.from_quat([0, 0, half, half]).as_matrix(), atol=1e-15)
+    with pytest.raises(DataError, match=r"^f:3: zero quaternion"):
+        quat_rotation(np.array([1e-10, 0.0, 0.0, 0.0]), "f:3")
 
 
 def test_read_tum_missing_file_and_commas(tmp_path):

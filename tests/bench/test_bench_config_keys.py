@@ -3,6 +3,7 @@ written with the old flat keys are compared (and resumed) under the new names.""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -73,3 +74,11 @@ def test_sweep_spec_yaml_of_a_spec_made_in_code_runs_the_same_sweep(tmp_path):
     run_sweep(sp, out, run_fn=FAKE, quiet=True, report=False)
     again = load_spec(out / "sweep_spec.yaml")
     assert [r.to_dict() for r in expand(again)] == [r.to_dict() for r in expand(sp)]
+
+
+def test_sweep_spec_yaml_of_a_shipped_spec_changed_in_code_is_the_changed_sweep(tmp_path):
+    sp = dataclasses.replace(load_spec("tiny"), encodings=["dense"], renders=["density"], seeds=[7])
+    out = tmp_path / "sweep"
+    run_sweep(sp, out, run_fn=FAKE, quiet=True, report=False)
+    again = [r.name for r in expand(load_spec(out / "sweep_spec.yaml"))]
+    assert again == [r.name for r in expand(sp)] and len(again) == 1 and again[0].endswith("__s7")

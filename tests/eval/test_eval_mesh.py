@@ -150,3 +150,10 @@ def test_icp_reports_the_fit_of_the_transform_it_returns():
         assert info["iterations"] == iters
         assert info["fitness"] == ok.mean() and info["inlier_rmse"] == pytest.approx(np.sqrt(np.mean(d[ok] ** 2)))
     assert icp_point_to_point(src, dst, max_corr=0.1, max_iter=1)[1]["inlier_rmse"] < 0.03  # better than the start
+
+
+def test_icp_without_inliers_reports_no_fit():
+    # every point further than max_corr from the target: no pair ever, and the returned (identity) T has no inliers
+    dst = np.random.default_rng().uniform(-1, 1, (200, 3))
+    T, info = icp_point_to_point(dst + [5.0, 0.0, 0.0], dst, max_corr=0.1)
+    assert np.array_equal(T, np.eye(4)) and info["fitness"] == 0.0 and info["inlier_rmse"] == 0.0

@@ -309,3 +309,8 @@ def test_faithful_grid_on_a_box_smaller_than_two_coarse_cells_is_a_config_error(
                                           r"twice the cell size \(0.24 m\)"):
         build_field(FieldConfig(encoding=encoding, faithful=True), small)
     assert build_field(FieldConfig(encoding=encoding, faithful=True, block_coarse=0.15), small) is not None
+    # one level is the fine level alone: the coarse cell size plays no part
+    one = build_field(FieldConfig(encoding=encoding, faithful=True, levels=1), small)
+    assert one.sdf(torch.from_numpy(small.mean(1, keepdims=True).T.repeat(5, 0)).float()).shape == (5,)
+    with pytest.raises(ConfigError, match=r"under twice the cell size \(0.25 m\)"):
+        build_field(FieldConfig(encoding=encoding, faithful=True, levels=1, block_fine=0.25), small)

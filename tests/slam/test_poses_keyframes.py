@@ -91,7 +91,8 @@ def test_keyframe_store_checkpoint_holds_only_the_rays_in_use(tmp_path):
     assert (tmp_path / "kf.pt").stat().st_size < 1.1 * rays_bytes
     other = KeyframeStore()
     other.load_state_dict(torch.load(tmp_path / "kf.pt"))
-    assert all(torch.equal(getattr(other, k)[:5000], getattr(store, k)[:5000]) for k in ("dirs", "rgb", "depth", "slot"))
+    assert all(torch.equal(getattr(other, k)[:5000], getattr(store, k)[:5000])
+               for k in ("dirs", "rgb", "depth", "slot"))
 
 
 def test_relative_trajectory_carries_non_keyframes_with_their_refined_keyframe():

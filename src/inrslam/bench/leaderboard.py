@@ -364,7 +364,9 @@ _TEX_SPECIAL = re.compile("|".join(re.escape(k) for k in _TEX))
 
 
 def _tex_escape(text: str) -> str:
-    r"""LaTeX text for `text`, every special character replaced in one pass. Example: 'a_b\c' -> 'a\_b\textbackslash{}c'."""
+    r"""LaTeX text for `text`, every special character replaced in one pass.
+
+    Example: 'a_b\c' -> 'a\_b\textbackslash{}c'."""
     return _TEX_SPECIAL.sub(lambda m: _TEX[m.group()], text)
 
 

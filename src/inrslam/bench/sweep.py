@@ -21,7 +21,7 @@ from typing import Callable
 import yaml
 
 from inrslam.bench.executors import EXECUTORS, ExecutorOptions, make_executor
-from inrslam.bench.spec import SPEC_KEYS, RunSpec, expand, load_spec, validate_runs
+from inrslam.bench.spec import SPEC_KEYS, RunSpec, SweepSpec, expand, load_spec, validate_runs
 from inrslam.bench.sweep_progress import SweepProgress
 from inrslam.bench.worker import fn_path
 from inrslam.errors import ConfigError
@@ -120,10 +120,11 @@ def _write_status(out: Path, res: SweepResult, meta: dict, state: str) -> None:
 
 def _save_spec(spec_arg, sp, out: Path) -> None:
     """`sweep_spec.yaml`, which `inrslam bench OUT/sweep_spec.yaml` runs again: the spec file as written, the dict
-    as given, or a `SweepSpec` made in code as its validated fields (scene paths resolved)."""
+    as given, or a `SweepSpec` object as its validated fields (scene paths resolved; one made from a file and then
+    changed in code keeps that file as its `source`, so the file is not what runs)."""
     if isinstance(spec_arg, dict):
         data = spec_arg
-    elif Path(sp.source).is_file():
+    elif not isinstance(spec_arg, SweepSpec) and Path(sp.source).is_file():
         write_text(out / "sweep_spec.yaml", Path(sp.source).read_text())
         return
     else:

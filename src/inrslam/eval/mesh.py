@@ -317,8 +317,8 @@ def icp_point_to_point(
             break
     d, _ = tree.query(src @ T[:3, :3].T + T[:3, 3], distance_upper_bound=max_corr)  # the returned T's, as Open3D
     ok = np.isfinite(d)
-    if ok.any():
-        fitness, rmse = float(ok.mean()), float(np.sqrt(np.mean(d[ok] ** 2)))
+    fitness = float(ok.mean()) if len(ok) else 0.0
+    rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else 0.0  # no inliers: 0, as Open3D reports
     return T, {"fitness": float(fitness), "inlier_rmse": float(rmse), "iterations": it}
 
 

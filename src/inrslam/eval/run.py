@@ -478,7 +478,7 @@ def eval_mesh_files(
     del protocol["alignment"], protocol["association"], protocol["rpe_delta"]
     for path, mesh in ((rec_path, rec), (gt_path, gt)):
         if _no_surface(mesh):
-            raise DataError(f"{path}: no triangles with area (a point cloud?): expected a triangle mesh")
+            raise DataError(f"{path}: no triangles with area (a point cloud?): expected a triangle mesh with a surface")
     if cameras_path is None:
         m = mesh_metrics(rec, gt, n_samples=n_samples, threshold=threshold, icp=icp, seed=seed)
         protocol["culling"] = None

@@ -47,9 +47,10 @@ def grid_entries(extent: np.ndarray, coarse: float, fine: float, levels: int, ha
     if faithful:
         n0 = max(1, max(math.floor(e / coarse) for e in extent))
         nf = max(1, max(math.floor(e / fine) for e in extent))
-        if min(n0, nf) < 2:  # base resolution 1: the original's level has scale 0 (every point reads one cell)
+        if nf < 2 or (levels > 1 and n0 < 2):  # resolution 1: the original's level has scale 0 (one cell read)
+            cell = fine if nf < 2 else coarse  # one level is the fine one alone
             raise ConfigError(f"field.faithful=true: the scene box's longest side ({max(extent):.3f} m) is under twice "
-                              f"the cell size ({coarse if n0 < 2 else fine} m), so the original's grid rule gives a "
+                              f"the cell size ({cell} m), so the original's grid rule gives a "
                               "level without cells; use a smaller field.block_coarse / block_fine or faithful=false")
         scales = [nf - 1.0] if levels == 1 else [n0 * (nf / n0) ** (l / (levels - 1)) - 1.0 for l in range(levels)]
         for s in scales:

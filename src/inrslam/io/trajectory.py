@@ -17,14 +17,17 @@ from inrslam.io.atomic import write_text
 
 def quat_rotation(q: np.ndarray, where: str) -> np.ndarray:
     """(3, 3) rotation of a finite quaternion (qx, qy, qz, qw) of any length, or a `DataError` at `where` for a zero
-    one (length below 1e-9). Scaled by its largest component before normalising, so that 1e300-sized components do
-    not overflow. Example: (0, 0, 0, 2) -> identity."""
+    one (length below 1e-9). q / |q| as always where |q| is finite; components so large (1e300) that |q| overflows are
+    scaled by the largest first. Example: (0, 0, 0, 2) -> identity."""
     q = np.asarray(q, dtype=np.float64)
-    m = float(np.abs(q).max())
-    if not m > 0 or m * np.linalg.norm(q / m) < 1e-9:
+    with np.errstate(over="ignore"):
+        n = float(np.linalg.norm(q))
+    if not np.isfinite(n):
+        u = q / float(np.abs(q).max())
+        q, n = u, float(np.linalg.norm(u))
+    if not n >= 1e-9:
         raise DataError(f"{where}: zero quaternion (expected qx qy qz qw of a rotation)")
-    u = q / m
-    return Rotation.from_quat(u / np.linalg.norm(u)).as_matrix()  # scipy: scalar-last (x, y, z, w)
+    return Rotation.from_quat(q / n).as_matrix()  # scipy: scalar-last (x, y, z, w)
 
 
 def poses_to_tum_lines(timestamps: np.ndarray, c2w: np.ndarray) -> list[str]:

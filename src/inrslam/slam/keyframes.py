@@ -69,8 +69,9 @@ class KeyframeStore:
         self.frame_ids.append(int(frame_id))
 
     def sample(self, n: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """n rays uniformly over all stored rays: without replacement while the store is small (< 8 n rays), with
-        replacement beyond (a full permutation of millions of rays every iteration would dominate mapping).
+        """n rays uniformly over all stored rays: without replacement while the store is small (n < rays < 8 n), with
+        replacement beyond (a full permutation of millions of rays every iteration would dominate mapping) and when
+        it holds at most n rays (a batch larger than the store repeats rays).
 
         Returns: slot (n,), dirs (n, 3), rgb (n, 3), depth (n,).
         """
