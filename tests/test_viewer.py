@@ -208,6 +208,62 @@ def test_panel_controls_change_the_scene(viewer, runs):
     assert wait_for(lambda: viewer.gui["run0/timeline_label"].content == "mesh: after frame 5")
 
 
+def test_damaged_files_of_a_run_are_notes_not_tracebacks(tmp_path, capsys):
+    pytest.importorskip("viser", reason="viser is not installed (pip install -e '.[viewer]')")
+    import inrslam
+    from inrslam.viewer.content import gather
+    from inrslam.viewer.server import serve
+
+    rd = tiny_run(tmp_path / "damaged")
+    (rd / "mesh.ply").write_bytes((rd / "mesh.ply").read_bytes()[:300])  # cut short inside its header / data
+    (rd / "renders" / "frame_000003.png").write_bytes(b"\x89PNG\r\n\x1a\n cut")
+    info = json.loads((rd / "run_info.json").read_text())
+    (rd / "run_info.json").write_text(json.dumps({**info, "intrinsics": {"fx": 50.0, "fy": 0}}))
+    content = gather(inrslam.load_run(rd))
+    assert any(n.startswith("run_info.json: intrinsics") and "expected positive width, height and fy" in n
+               for n in content.notes)
+    v = serve([inrslam.load_run(rd)], port=0)
+    try:
+        assert "/run0/mesh" not in v.nodes and "mesh.ply: unreadable mesh" in v.gui["run0/notes"].content
+        assert "frame_000003.png: unreadable picture" in v.gui["run0/frame_status"].content
+        assert v.gui["run0/image"].image.shape == (8, 32, 3) and "/run0/heldout" not in v.nodes
+        v.gui["run0/frame"].value = "8"  # a readable frame: its picture and frustum, the status cleared
+        assert wait_for(lambda: v.gui["run0/frame_status"].content == "" and "/run0/heldout" in v.nodes)
+    finally:
+        v.stop()
+
+
+def test_panel_callbacks_run_one_at_a_time_and_end_at_the_last_value():
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from inrslam.viewer.server import _latest
+
+    class Control:  # what viser's controls offer the callback: the current value
+        value = 0
+
+    shown, running = [], []
+
+    def show(value):  # slow for the first value, as a large mesh is
+        running.append(value)
+        assert len(running) == 1, "two callbacks at once"
+        time.sleep(0.2 if value == 0 else 0.0)
+        shown.append(value)
+        running.pop()
+
+    control = Control()
+    on_update = _latest(control, threading.Lock(), show)
+    with ThreadPoolExecutor(4) as pool:  # viser: set the value, then submit the callback to a pool
+        first = pool.submit(on_update, None)
+        time.sleep(0.05)
+        for value in (1, 2, 3):
+            control.value = value
+            pool.submit(on_update, None)
+    first.result()
+    assert shown[0] == 0 and shown[-1] == 3 and len(shown) == len(set(shown))  # the last value last, none twice
+
+
 def test_server_answers_http(viewer):
     with urllib.request.urlopen(f"http://127.0.0.1:{viewer.port}/", timeout=10) as r:
         assert r.status == 200 and b"<html" in r.read(4096).lower()

@@ -84,9 +84,13 @@ def gather(run: LoadedRun) -> RunContent:
     if run.metrics is None:
         notes.append("no metrics.json (the run is unfinished)")
     intrinsics = run.run_info.get("intrinsics")
-    if not intrinsics:
-        notes.append("no camera intrinsics in run_info.json: frusta drawn with a 60 degree field of view")
-    fov_y, aspect = camera_fov(intrinsics)
+    try:
+        fov_y, aspect = camera_fov(intrinsics)
+        if not intrinsics:
+            notes.append("no camera intrinsics in run_info.json: frusta drawn with a 60 degree field of view")
+    except ValueError as e:
+        fov_y, aspect = camera_fov(None)
+        notes.append(f"run_info.json: {e}: frusta drawn with a 60 degree field of view")
     ok = valid_poses(run.est)
     keyframes = {int(k): run.est[k] for k in run.keyframes if 0 <= k < len(run.est) and ok[k]}
     gt_segments = None if gt is None else polyline_segments(gt)

@@ -13,6 +13,7 @@ import contextlib
 import io
 import logging
 import socket
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -21,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from inrslam.errors import InrslamError
+from inrslam.errors import InrslamError, RunError
 from inrslam.viewer.content import RunContent, gather, panel_views
 from inrslam.viewer.shapes import GT_COLOR, frustum_pose, overview_camera, run_color, up_direction
 from inrslam.viewer.tables import comparison_markdown, metrics_markdown
@@ -103,7 +104,12 @@ class RunViewer:
 def serve(runs: Sequence[LoadedRun], host: str = "127.0.0.1", port: int = 8080) -> RunViewer:
     """Start a server showing `runs` (from `inrslam.load_run`) and return at once; `.wait()` blocks, `.stop()`
     ends it."""
-    return show_runs(start_server(host, port), runs)
+    server = start_server(host, port)
+    try:
+        return show_runs(server, runs)
+    except BaseException:
+        stop_server(server)  # its port and threads are not left behind
+        raise
 
 
 def show_runs(server, runs: Sequence[LoadedRun]) -> RunViewer:
@@ -127,17 +133,24 @@ def show_runs(server, runs: Sequence[LoadedRun]) -> RunViewer:
 
 
 def read_picture(path: Path) -> np.ndarray:
-    """(H, W, 3) uint8 of a PNG."""
+    """(H, W, 3) uint8 of a PNG; RunError naming the file when it cannot be read."""
     from PIL import Image
 
-    with Image.open(path) as im:
-        return np.asarray(im.convert("RGB"))
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"))
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:
+        raise RunError(f"{path}: unreadable picture ({type(e).__name__}: {str(e)[:80]})") from None
 
 
 def load_mesh(path: Path):
+    """A trimesh of a PLY; RunError naming the file when it cannot be read."""
     import trimesh
 
-    return trimesh.load(path, process=False, force="mesh")
+    try:
+        return trimesh.load(path, process=False, force="mesh")
+    except Exception as e:  # noqa: BLE001 - a damaged PLY fails anywhere in trimesh's parsers
+        raise RunError(f"{path}: unreadable mesh ({type(e).__name__}: {str(e)[:80]})") from None
 
 
 def mesh_glb(mesh) -> bytes:
@@ -158,10 +171,14 @@ def _add_run(v: RunViewer, k: int, c: RunContent) -> list[np.ndarray]:
     spans = [c.est[:, :3, 3]]
     v.nodes[root] = scene.add_frame(root, show_axes=False)
     if c.mesh is not None:
-        mesh = load_mesh(c.mesh)
-        v.nodes[f"{root}/mesh"] = add_mesh(v.server, f"{root}/mesh", mesh)
-        if mesh.bounds is not None:
-            spans.append(np.asarray(mesh.bounds))
+        try:
+            mesh = load_mesh(c.mesh)
+        except RunError as e:
+            c.notes.append(str(e))
+        else:
+            v.nodes[f"{root}/mesh"] = add_mesh(v.server, f"{root}/mesh", mesh)
+            if mesh.bounds is not None:
+                spans.append(np.asarray(mesh.bounds))
     if len(c.est_segments):
         v.nodes[f"{root}/trajectory"] = scene.add_line_segments(
             f"{root}/trajectory", c.est_segments, run_color(k), thickness=LINE_PX, thickness_units="screen")
@@ -187,14 +204,43 @@ def _add_run(v: RunViewer, k: int, c: RunContent) -> list[np.ndarray]:
     return spans
 
 
+def _latest(control, lock: threading.Lock, show: Any) -> Any:
+    """A callback for `control` that calls show(value): one at a time (viser runs callbacks on a thread pool) and
+    only for a value not shown yet, read after the lock, so the scene ends at the control's last value."""
+    shown: list[Any] = [object()]
+
+    def on_update(_) -> None:
+        with lock:
+            value = control.value
+            if value != shown[0]:
+                show(value)
+                shown[0] = value
+
+    return on_update
+
+
+def _picture(path: Path, status) -> np.ndarray | None:
+    """read_picture, or None with the error shown in `status` (a markdown element)."""
+    try:
+        picture = read_picture(path)
+    except RunError as e:
+        status.content = f"{e}"
+        return None
+    status.content = ""
+    return picture
+
+
 def _add_renders(v: RunViewer, k: int, c: RunContent) -> None:
     """A dropdown of the held-out frames, their picture in the panel and on a frustum at the frame's pose."""
     scene, gui, name = v.server.scene, v.server.gui, f"/run{k}/heldout"
     frames = list(c.renders)
     pick = v.gui[f"run{k}/frame"] = gui.add_dropdown("held-out frame", [str(f) for f in frames],
                                                       initial_value=str(frames[0]))
-    first = read_picture(c.renders[frames[0]])
-    image = v.gui[f"run{k}/image"] = gui.add_image(first, label="observed | render | depth | error", format="jpeg")
+    status = v.gui[f"run{k}/frame_status"] = gui.add_markdown("")
+    first = _picture(c.renders[frames[0]], status)
+    blank = np.zeros((8, 32, 3), np.uint8)
+    image = v.gui[f"run{k}/image"] = gui.add_image(blank if first is None else first,
+                                                   label="observed | render | depth | error", format="jpeg")
 
     def place(frame: int, picture: np.ndarray) -> None:
         if frame >= len(c.est) or not np.isfinite(c.est[frame]).all():
@@ -205,13 +251,15 @@ def _add_renders(v: RunViewer, k: int, c: RunContent) -> None:
                                                  wxyz=wxyz, position=pos, thickness=2 * FRUSTUM_PX,
                                                  thickness_units="screen")
 
-    def on_pick(_) -> None:
-        picture = read_picture(c.renders[int(pick.value)])
-        image.image = picture
-        place(int(pick.value), picture)
+    def show(value: str) -> None:
+        picture = _picture(c.renders[int(value)], status)
+        image.image = blank if picture is None else picture
+        if picture is not None:
+            place(int(value), picture)
 
-    place(frames[0], first)
-    pick.on_update(on_pick)
+    if first is not None:
+        place(frames[0], first)
+    pick.on_update(_latest(pick, threading.Lock(), show))
 
 
 def _add_timeline(v: RunViewer, k: int, c: RunContent) -> None:
@@ -223,11 +271,17 @@ def _add_timeline(v: RunViewer, k: int, c: RunContent) -> None:
     slider = v.gui[f"run{k}/timeline"] = gui.add_slider("mesh", 0, len(steps) - 1, 1, len(steps) - 1)
     shown = v.gui[f"run{k}/timeline_label"] = gui.add_markdown(f"mesh: {steps[-1][0]}")
 
-    def on_move(_) -> None:
-        label, path = steps[int(slider.value)]
-        v.nodes[name] = add_mesh(v.server, name, load_mesh(path))
+    def show(value: float) -> None:
+        label, path = steps[int(value)]
+        try:
+            mesh = load_mesh(path)
+        except RunError as e:
+            shown.content = f"mesh: {label}: {e}"
+            return
+        v.nodes[name] = add_mesh(v.server, name, mesh)
         shown.content = f"mesh: {label}"
 
+    on_move = _latest(slider, threading.Lock(), show)
     if c.mesh is None:
         on_move(None)
     slider.on_update(on_move)

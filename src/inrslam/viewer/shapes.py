@@ -59,13 +59,19 @@ def frustum_pose(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def camera_fov(intrinsics: dict | None) -> tuple[float, float]:
     """(vertical field of view [rad], aspect width / height) of a pinhole camera given as run_info.json's
-    `intrinsics` dict (fx, fy, cx, cy, width, height); DEFAULT_FOV_Y, DEFAULT_ASPECT when None.
+    `intrinsics` dict (fx, fy, cx, cy, width, height); DEFAULT_FOV_Y, DEFAULT_ASPECT when None; ValueError when
+    it lacks a positive width, height or fy.
 
     fov_y = 2 atan(H / (2 fy)).
     """
     if not intrinsics:
         return DEFAULT_FOV_Y, DEFAULT_ASPECT
-    w, h, fy = float(intrinsics["width"]), float(intrinsics["height"]), float(intrinsics["fy"])
+    try:
+        w, h, fy = (float(intrinsics[k]) for k in ("width", "height", "fy"))  # type: ignore[index]
+    except (KeyError, TypeError, ValueError, IndexError):
+        w = h = fy = float("nan")
+    if not all(math.isfinite(x) and x > 0 for x in (w, h, fy)):
+        raise ValueError(f"intrinsics {str(intrinsics)[:80]} (expected positive width, height and fy)")
     return 2.0 * math.atan(h / (2.0 * fy)), w / h
 
 
