@@ -96,3 +96,26 @@ def test_load_run_reads_a_written_over_keyframes_json(finished, tmp_path, text):
     shutil.copytree(finished.root, copy)
     (copy / "keyframes.json").write_text(text)
     assert inrslam.load_run(copy).keyframes == ([0, 5] if text.startswith('{"keyframes": [') else [])
+
+
+@pytest.mark.parametrize("name", ["run_info.json", "metrics.json"])
+def test_load_run_of_a_damaged_record_names_the_file(finished, tmp_path, name):
+    copy = tmp_path / "run"
+    shutil.copytree(finished.root, copy)
+    (copy / name).write_text((copy / name).read_text()[:40])  # cut short
+    with pytest.raises(RunError, match=rf"{name}: not a JSON object \(truncated or edited\?\)"):
+        inrslam.load_run(copy)
+
+
+def test_load_run_of_a_record_without_the_camera_names_the_key(finished, tmp_path):
+    copy = tmp_path / "run"
+    shutil.copytree(finished.root, copy)
+    info = json.loads((copy / "run_info.json").read_text())
+    del info["bounds"]
+    info["intrinsics"] = {"fx": 50}
+    (copy / "run_info.json").write_text(json.dumps(info))
+    r = inrslam.load_run(copy)
+    with pytest.raises(RunError, match=r"run_info\.json: 'intrinsics' is \{'fx': 50\} \(expected fx, fy, cx, cy"):
+        _ = r.intrinsics
+    with pytest.raises(RunError, match=r"run_info\.json: no 'bounds' \(expected a run directory written by"):
+        _ = r.model

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 import yaml
@@ -182,3 +183,32 @@ def _no_raise():
     import contextlib
 
     return contextlib.nullcontext()
+
+
+@pytest.mark.parametrize("flags", [["--preset", "paper"], ["--preset", "accurate"], ["--overwrite"]])
+def test_resume_refuses_a_preset_or_overwrite_it_would_ignore(tmp_path, capsys, flags):
+    run = write_fake_run(tmp_path / "runs", "dense", "density", frames=4)
+    assert main(["run", "--resume", str(run), *flags]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"do not combine it with {flags[0]}" in err
+
+
+def test_ctrl_c_in_export_leaves_nothing_and_says_so(tmp_path, capsys, monkeypatch):
+    import inrslam.scenes.export as export
+
+    real = export._save_image
+    calls = []
+
+    def interrupted(path, img, **kw):  # Ctrl-C at the fourth picture
+        calls.append(path)
+        if len(calls) == 4:
+            raise KeyboardInterrupt
+        real(path, img, **kw)
+
+    monkeypatch.setattr(export, "_save_image", interrupted)
+    out = tmp_path / "room_tum"
+    assert main(["export", "room", "--layout", "tum", "--out", str(out), "--frames", "3", "--width", "32",
+                 "--height", "24"]) == 130
+    err = capsys.readouterr().err
+    assert err == f"inrslam export: interrupted; nothing was exported to {out} (an export is written as a whole)\n"
+    assert len(calls) == 4 and not out.exists() and os.listdir(tmp_path) == []

@@ -235,7 +235,6 @@ def test_damaged_files_of_a_run_are_notes_not_tracebacks(tmp_path, capsys):
 
 def test_panel_callbacks_run_one_at_a_time_and_end_at_the_last_value():
     import threading
-    import time
     from concurrent.futures import ThreadPoolExecutor
 
     from inrslam.viewer.server import _latest
@@ -244,24 +243,29 @@ def test_panel_callbacks_run_one_at_a_time_and_end_at_the_last_value():
         value = 0
 
     shown, running = [], []
+    started, release = threading.Event(), threading.Event()
 
-    def show(value):  # slow for the first value, as a large mesh is
+    def show(value):  # the first value is slow (a large mesh): it holds on until the others are queued
         running.append(value)
         assert len(running) == 1, "two callbacks at once"
-        time.sleep(0.2 if value == 0 else 0.0)
+        if value == 0:
+            started.set()
+            assert release.wait(10)
         shown.append(value)
         running.pop()
 
     control = Control()
     on_update = _latest(control, threading.Lock(), show)
-    with ThreadPoolExecutor(4) as pool:  # viser: set the value, then submit the callback to a pool
-        first = pool.submit(on_update, None)
-        time.sleep(0.05)
+    with ThreadPoolExecutor(4) as pool:  # viser: set the value, then submit the callback to its pool
+        futures = [pool.submit(on_update, None)]
+        assert started.wait(10)
         for value in (1, 2, 3):
             control.value = value
-            pool.submit(on_update, None)
-    first.result()
-    assert shown[0] == 0 and shown[-1] == 3 and len(shown) == len(set(shown))  # the last value last, none twice
+            futures.append(pool.submit(on_update, None))
+        release.set()
+        for f in futures:
+            f.result()  # no assertion failed in a callback
+    assert shown == [0, 3]  # the last value, once; the values passed over are never drawn
 
 
 def test_server_answers_http(viewer):
@@ -327,6 +331,28 @@ def test_live_viewer_follows_the_run_and_spaces_its_meshes():
         for i in range(4):
             starved(i, 4, {"est": est[: i + 1], "mesh": mesh})
         assert starved.meshes == 1 and starved.skipped_meshes == 2 and len(mesh.calls) == 3
+    finally:
+        stop_server(server)
+
+
+def test_an_error_in_the_live_viewer_warns_once_and_the_run_goes_on():
+    pytest.importorskip("viser", reason="viser is not installed (pip install -e '.[viewer]')")
+    from inrslam.errors import InrslamWarning
+    from inrslam.viewer.live import LiveViewer
+    from inrslam.viewer.server import start_server, stop_server
+
+    def broken(resolution):
+        raise ValueError("marching cubes found no surface")
+
+    server = start_server(port=0)
+    try:
+        live = LiveViewer(server, mesh_every=1, mesh_budget=1e9)
+        est = np.tile(np.eye(4), (4, 1, 1))
+        with pytest.warns(InrslamWarning, match=r"live viewer stopped at frame 1 \(ValueError: marching cubes found "
+                                                r"no surface\); the run goes on") as caught:
+            for i in range(4):
+                live(i, 4, {"est": est[: i + 1], "mesh": broken})  # frame 1 asks for the first mesh
+        assert len(caught) == 1 and live.failed.startswith("ValueError")
     finally:
         stop_server(server)
 

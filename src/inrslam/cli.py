@@ -76,7 +76,7 @@ def build_parser(registry_help: bool = True) -> argparse.ArgumentParser:
     r.add_argument("--encoding", help=f"scene representation F: {enc_help}")
     r.add_argument("--render", help=f"rendering function G: {ren_help}")
     r.add_argument("--max-frames", type=int, help="process at most N frames (0 = all)")
-    r.add_argument("--preset", default="paper", help=f"settings preset: {', '.join(preset_names())} (default paper)")
+    r.add_argument("--preset", default=None, help=f"settings preset: {', '.join(preset_names())} (default paper)")
     r.add_argument("--config", help="YAML config file (may `inherit_from` another file or preset:NAME); "
                                     "a run's config.yaml reproduces that run")
     r.add_argument("--dataset", help="force the dataset layout instead of detecting it "
@@ -238,8 +238,8 @@ def _run_with_display(args, console, display: "_StatusDisplay | None") -> int:
     progress_cb = _frame_progress(display)
     if args.resume:
         given = [f"--{k.replace('_', '-')}" for k in ("data", "out", "encoding", "render", "max_frames", "config",
-                                                      "dataset", "device", "seed", "poses")
-                 if getattr(args, k) is not None]
+                                                      "dataset", "device", "seed", "poses", "preset")
+                 if getattr(args, k) is not None] + (["--overwrite"] if args.overwrite else [])
         if given or args.overrides:
             raise InrslamError(f"inrslam run --resume continues a run with its own config.yaml; do not combine it "
                                f"with {', '.join(given + list(args.overrides))}")
@@ -257,7 +257,7 @@ def _run_with_display(args, console, display: "_StatusDisplay | None") -> int:
             val = getattr(args, flag)
             if val is not None:
                 ov.append(f"{key}={val}")
-        cfg = absolute_paths(load_config(args.config, preset=args.preset, overrides=ov))
+        cfg = absolute_paths(load_config(args.config, preset=args.preset or "paper", overrides=ov))
         _check_registry_names(cfg)
         _check_device(cfg)
         live = _start_live_viewer(args, console) if args.viewer else None
@@ -675,6 +675,8 @@ def _interrupted_message(args) -> str:
     if args.command == "bench":
         return (f"interrupted; finished runs are kept and checkpointed ones continue: resume the sweep with "
                 f"inrslam bench {args.spec} --out {args.out}")
+    if args.command == "export":
+        return f"interrupted; nothing was exported to {args.out} (an export is written as a whole)"
     return "interrupted"
 
 

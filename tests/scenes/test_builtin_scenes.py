@@ -321,6 +321,35 @@ def test_export_tum_layout(room, tmp_path):
     np.testing.assert_allclose(poses, room.poses, atol=1e-6)
 
 
+class _FailsAt:
+    """`room` whose frame `k` cannot be read: an export that stops there."""
+
+    def __init__(self, ds, k: int):
+        self.ds, self.k, self.intrinsics, self.gt_mesh = ds, k, ds.intrinsics, getattr(ds, "gt_mesh", None)
+
+    def __iter__(self):
+        for i in range(len(self.ds)):
+            if i == self.k:
+                raise KeyboardInterrupt  # Ctrl-C in the middle
+            yield self.ds[i]
+
+
+@pytest.mark.parametrize("export", [export_replica, export_tum])
+def test_an_interrupted_export_leaves_no_half_dataset(room, tmp_path, export):
+    out = tmp_path / "new"
+    with pytest.raises(KeyboardInterrupt):
+        export(_FailsAt(room, 5), out)
+    assert not out.exists() and os.listdir(tmp_path) == []  # nor a temporary folder
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(KeyboardInterrupt):
+        export(_FailsAt(room, 5), tmp_path / "empty")
+    assert os.listdir(tmp_path / "empty") == []
+    done = export(room, tmp_path / "empty")  # an empty folder is filled as a whole
+    assert sorted(os.listdir(tmp_path)) == ["empty"] and (done / "mesh.ply").is_file()
+    if export is export_tum:
+        assert "# file: 'empty'" in (done / "rgb.txt").read_text()  # the folder's own name, not the temporary one
+
+
 @pytest.mark.parametrize("name", ["loop", "symmetric"])
 def test_loop_scenes_go_once_around_and_come_back(name):
     layout = SCENES.get(name)(0)

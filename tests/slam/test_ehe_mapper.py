@@ -44,6 +44,8 @@ def test_keyframe_rule_by_voxel_overlap_or_frame_gap():
     assert not needs_keyframe(0.6, 10, cfg)
     assert needs_keyframe(0.5, 10, cfg)  # below kf_overlap = 0.55
     assert needs_keyframe(0.9, 101, cfg) and not needs_keyframe(0.9, 100, cfg)  # more than 100 frames
+    # a frame without valid depth observes no voxel: never a keyframe, however long since the last one
+    assert not needs_keyframe(0.0, 101, cfg, n_observed=0) and needs_keyframe(0.0, 1, cfg, n_observed=5)
 
 
 def test_window_takes_greedy_coverage_first_then_random_keyframes():
@@ -52,8 +54,14 @@ def test_window_takes_greedy_coverage_first_then_random_keyframes():
           [torch.arange(1000 + k, 1001 + k) for k in range(8)]
     g = torch.Generator().manual_seed(0)
     w = select_window(cur, kfs, window=4, random_fraction=0.5, generator=g)
-    # kf 0 covers 60 voxels; then kf 1 adds 40 (kf 2 adds none): coverage stops, 2 random of the rest
+    # two coverage picks: kf 0 covers 60 voxels, then kf 1 the other 40; 2 random of the rest
     assert w[:2] == [0, 1] and len(w) == 4 and len(set(w)) == 4 and not {0, 1} & set(w[2:])
+    # three coverage picks allowed, but after kfs 0 and 1 nothing is left to cover (kf 2 adds none): coverage stops
+    # at two and the other four are random, so kf 2 is only there by chance
+    w6 = select_window(cur, kfs, window=6, random_fraction=0.5, generator=torch.Generator().manual_seed(0))
+    assert w6[:2] == [0, 1] and len(set(w6)) == 6 and not {0, 1} & set(w6[2:])
+    picks = {tuple(select_window(cur, kfs, 6, 0.5, torch.Generator().manual_seed(s))[2:3]) for s in range(20)}
+    assert len(picks) > 1  # the third is a random draw, not the greedy kf 2
     assert select_window(cur, kfs[:3], window=4, random_fraction=0.5, generator=g) == [0, 1, 2]
     all_random = select_window(cur, kfs, window=4, random_fraction=1.0, generator=g)
     assert len(set(all_random)) == 4

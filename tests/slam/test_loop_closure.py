@@ -210,6 +210,9 @@ def test_verifications_that_disagree_are_ambiguous():
     b = near(2, twist([-0.49, 0, 0, 0, 0, 0]))  # x = 0.51: agrees
     c = near(2, twist([-0.3, 0, 0, 0, 0, 0]))  # x = 0.7: another place
     assert consistent([a, b], est, 0.05) and not consistent([a, c], est, 0.05) and consistent([a], est, 0.05)
+    lo, hi = near(0, twist([0.46, 0, 0, 0, 0, 0])), near(0, twist([0.54, 0, 0, 0, 0, 0]))
+    assert not consistent([a, lo, hi], est, 0.05)  # each 4 cm from the first, 8 cm from each other
+    assert consistent([], est, 0.05)
     assert isinstance(Candidate(1, 0.1, 2.0).overlap, float)
 
 
@@ -470,3 +473,32 @@ def test_interrupted_loop_closure_run_resumes_to_the_uninterrupted_result(loop_r
     (mine,), (theirs,) = _records(out, "loop_final"), _records(loop_run, "loop_final")
     assert mine["frame"] == 119 and mine["edges"] == theirs["edges"] and mine["unfitted_m"] == theirs["unfitted_m"]
     assert ("refit_ms" in mine) == ("refit_ms" in theirs)
+
+
+def test_reported_keyframe_moves_are_the_moves_applied():
+    # keyframes 0, 4, 8, 12 along x; one loop edge says keyframe 12 is where keyframe 0 is. With the tracker's local
+    # map from frame 8 on (rigid_from), keyframes 8 and 12 move with the newest's correction, not to the graph's
+    # optimum: the returned moves (which decide re-fits) must be those applied.
+    from types import MethodType, SimpleNamespace
+
+    from inrslam.slam.system import SlamSystem
+
+    n = 14
+    est = np.stack([np.eye(4)] * n)
+    est[:, 0, 3] = 0.1 * np.arange(n)
+    kf_ids = [0, 4, 8, 12]
+    state = SimpleNamespace(est=torch.tensor(est, dtype=torch.float64), kf_odometry={},
+                            rel_kf=np.array([k // 4 * 4 for k in range(n)]),
+                            loops=[{"candidate": 0, "frame": 12, "T": np.eye(4)}])
+    fake = SimpleNamespace(state=state, store=SimpleNamespace(frame_ids=kf_ids), _local_target="cached",
+                           cfg=SimpleNamespace(slam=SimpleNamespace(loop=LoopConfig())))
+    fake._odometry_edges = MethodType(SlamSystem._odometry_edges, fake)
+    moved = SlamSystem._optimise_graph(fake, n - 1, est.copy(), rigid_from=8)
+    after = state.est.numpy()
+    applied = np.linalg.norm(after[kf_ids, :3, 3] - est[kf_ids, :3, 3], axis=1)
+    np.testing.assert_allclose(moved, applied, atol=1e-12)
+    optimum = corrected_keyframes(est[kf_ids], kf_ids, state.loops, LoopConfig(),
+                                  fake._odometry_edges(kf_ids, est))
+    assert abs(np.linalg.norm(optimum[2, :3, 3] - est[8, :3, 3]) - applied[2]) > 1e-3  # the two differ here
+    assert np.allclose(after[8], after[12] @ np.linalg.solve(est[12], est[8]))  # 8 moved rigidly with 12
+    assert fake._local_target is None

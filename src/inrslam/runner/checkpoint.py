@@ -1,8 +1,10 @@
 """Checkpoint files: a `SlamState` plus the writer's process bookkeeping, with checksums of every array.
 
 A checkpoint is written atomically (the previous one survives a crash or a full disk) and verified when loaded:
-a truncated, zero-byte, bit-flipped or foreign checkpoint is a one-line `RunError`, never a traceback or a run
-that silently carries NaNs on.
+a truncated, zero-byte or foreign checkpoint, or one with a bit flipped in any array, is a one-line `RunError`,
+never a traceback or a run that silently carries NaNs on (the few Python scalars and lists beside the arrays, loss
+histories and event records, carry no checksum). A checkpoint is a pickle (`torch.load(weights_only=False)`): load
+only run directories you trust, as with any pickle.
 """
 
 from __future__ import annotations

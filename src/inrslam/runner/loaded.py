@@ -41,6 +41,12 @@ class LoadedRun:
     keyframes: list[int]
     _rd: RunDir = field(repr=False, default=None)  # type: ignore[assignment]
 
+    def _info(self, key: str) -> Any:
+        """run_info.json's `key`, or a RunError naming the file (a run directory from another version)."""
+        if key not in self.run_info:
+            raise RunError(f"{self._rd.run_info}: no '{key}' (expected a run directory written by inrslam run)")
+        return self.run_info[key]
+
     def mesh(self, frame: int | None = None):
         """The final `mesh.ply` (or the intermediate mesh after `frame`) as a trimesh; None if the run has none."""
         import trimesh
@@ -59,7 +65,7 @@ class LoadedRun:
             raise RunError(f"{ckpt}: no checkpoint, so no map to render (runs made with "
                            "output.keep_checkpoint=false keep none)")
         state = load_checkpoint(ckpt)
-        model = model_class(self.config)(self.config, np.asarray(self.run_info["bounds"], dtype=np.float64))
+        model = model_class(self.config)(self.config, np.asarray(self._info("bounds"), dtype=np.float64))
         try:
             model.load_state_dict(state["model"])
         except (KeyError, RuntimeError) as e:
@@ -72,7 +78,10 @@ class LoadedRun:
         """The run's camera (`Intrinsics`, from run_info.json)."""
         from inrslam.geometry.intrinsics import Intrinsics
 
-        d = self.run_info["intrinsics"]
+        d = self._info("intrinsics")
+        if not isinstance(d, dict) or not all(k in d for k in ("fx", "fy", "cx", "cy", "width", "height")):
+            raise RunError(f"{self._rd.run_info}: 'intrinsics' is {str(d)[:60]} (expected fx, fy, cx, cy, width, "
+                           "height)")
         return Intrinsics(fx=d["fx"], fy=d["fy"], cx=d["cx"], cy=d["cy"], width=int(d["width"]),
                           height=int(d["height"]))
 
@@ -108,6 +117,9 @@ def load_run(run_dir: str | os.PathLike) -> LoadedRun:
     rd = RunDir(run_dir)
     if not rd.config.is_file() or not rd.run_info.is_file():
         raise RunError(f"{rd.root}: not a run directory (expected config.yaml and run_info.json)")
+    bad = rd.corrupt_files()
+    if bad:
+        raise RunError(f"{rd.root / bad[0]}: not a JSON object (truncated or edited?); expected the run's record")
     info = rd.read_run_info() or {}
     traj = _tum(rd.trajectory)
     if traj is None:

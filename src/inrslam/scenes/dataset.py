@@ -58,6 +58,11 @@ class BuiltinDataset:
     def __len__(self) -> int:
         return len(self.poses)
 
+    @property
+    def pose_valid(self) -> np.ndarray:
+        """(N,) bool: every generated pose is a pose (what each frame's `pose_valid` says), without reading images."""
+        return np.ones(len(self.poses), dtype=bool)
+
     def _index(self, i: int) -> int:
         n = len(self)
         if not -n <= i < n:

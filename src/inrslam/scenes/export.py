@@ -15,7 +15,9 @@ TUM RGB-D::
     <out>/groundtruth.txt                       "timestamp tx ty tz qx qy qz qw", c2w OpenCV axes, at the rgb times
     <out>/intrinsics.json                       fx, fy, cx, cy, width, height (the TUM layout has no calibration file)
 
-Depth timestamps are the colour ones + `TUM_DEPTH_DT` so readers must associate the two streams.
+Depth timestamps are the colour ones + `TUM_DEPTH_DT` so readers must associate the two streams. A new or empty
+`<out>` is written as a whole (into a temporary folder renamed at the end): an interrupted export leaves no half
+dataset behind.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import numpy as np
 from PIL import Image
 
 from inrslam.geometry.intrinsics import Intrinsics
-from inrslam.io.atomic import atomic_path, write_json, write_text
+from inrslam.io.atomic import atomic_folder, atomic_path, write_json, write_text
 from inrslam.io.trajectory import write_tum
 from inrslam.scenes.store import encode_depth
 
@@ -57,12 +59,34 @@ def _copy_mesh(dataset, out: Path) -> None:
             shutil.copyfile(mesh, tmp)
 
 
+def _whole(write, dataset, out_dir: str | Path) -> Path:
+    """write(dataset, folder, name) into `out_dir`: as a whole where it is new or empty, else in place."""
+    out = Path(out_dir)
+    if out.is_dir() and any(out.iterdir()):
+        write(dataset, out, out.name)
+        return out
+    with atomic_folder(out) as tmp:
+        write(dataset, tmp, out.name)
+    return out
+
+
 def export_replica(dataset, out_dir: str | Path) -> Path:
     """Write `dataset` in the NICE-SLAM Replica layout (see module docstring). Returns `out_dir`.
 
     Poses must be valid (camera-to-world, OpenCV axes); depth is clipped at 65535 / 6553.5 = 10 m.
     """
-    out = Path(out_dir)
+    return _whole(_write_replica, dataset, out_dir)
+
+
+def export_tum(dataset, out_dir: str | Path) -> Path:
+    """Write `dataset` in the TUM RGB-D layout (see module docstring). Returns `out_dir`.
+
+    Timestamps are the dataset's (seconds); file names use them with 6 decimals. Depth is clipped at 13.1 m.
+    """
+    return _whole(_write_tum, dataset, out_dir)
+
+
+def _write_replica(dataset, out: Path, name: str) -> None:
     (out / "results").mkdir(parents=True, exist_ok=True)
     rows = []
     for k, fr in enumerate(dataset):
@@ -74,19 +98,13 @@ def export_replica(dataset, out_dir: str | Path) -> Path:
     write_json(out / "cam_params.json", {"camera": {"w": intr.width, "h": intr.height, "fx": intr.fx, "fy": intr.fy,
                                                     "cx": intr.cx, "cy": intr.cy, "scale": REPLICA_DEPTH_SCALE}})
     _copy_mesh(dataset, out)
-    return out
 
 
-def export_tum(dataset, out_dir: str | Path) -> Path:
-    """Write `dataset` in the TUM RGB-D layout (see module docstring). Returns `out_dir`.
-
-    Timestamps are the dataset's (seconds); file names use them with 6 decimals. Depth is clipped at 13.1 m.
-    """
-    out = Path(out_dir)
+def _write_tum(dataset, out: Path, name: str) -> None:
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
-    rgb_lines = ["# color images", f"# file: '{out.name}'", "# timestamp filename"]
-    depth_lines = ["# depth maps", f"# file: '{out.name}'", "# timestamp filename"]
+    rgb_lines = ["# color images", f"# file: '{name}'", "# timestamp filename"]
+    depth_lines = ["# depth maps", f"# file: '{name}'", "# timestamp filename"]
     ts, poses = [], []
     for fr in dataset:
         t_rgb, t_depth = f"{fr.timestamp:.6f}", f"{fr.timestamp + TUM_DEPTH_DT:.6f}"
@@ -101,4 +119,3 @@ def export_tum(dataset, out_dir: str | Path) -> Path:
     write_tum(out / "groundtruth.txt", np.array(ts), np.stack(poses), header="ground truth trajectory (c2w, OpenCV axes)")
     write_json(out / "intrinsics.json", {**_intrinsics_dict(dataset.intrinsics), "depth_scale": TUM_DEPTH_SCALE})
     _copy_mesh(dataset, out)
-    return out

@@ -197,8 +197,8 @@ def color_confirms(loop_e: float, estimate_e: float, first: bool, margin: float)
 def consistent(verified: list[Verification], est: np.ndarray, tol: float) -> bool:
     """Whether the accepted verifications place the current keyframe within `tol` metres of each other (more than
     one place that fits equally: an ambiguous, repeated-structure match)."""
-    pos = [(est[v.frame] @ v.T_cand_cur)[:3, 3] for v in verified]
-    return all(np.linalg.norm(p - pos[0]) <= tol for p in pos[1:])
+    pos = np.array([(est[v.frame] @ v.T_cand_cur)[:3, 3] for v in verified]).reshape(-1, 3)
+    return bool((np.linalg.norm(pos[:, None] - pos[None], axis=-1) <= tol).all())  # every pair
 
 
 def corrected_keyframes(kf_poses: np.ndarray, kf_ids: list[int], loops: list[dict], cfg: LoopConfig,

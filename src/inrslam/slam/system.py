@@ -612,7 +612,7 @@ class SlamSystem:
     def _optimise_graph(self, i: int, est: np.ndarray, rigid_from: int | None) -> np.ndarray:
         """Pose graph of the keyframes up to frame i (tracked odometry + `state.loops`); frames 0..i follow their
         keyframes (from `rigid_from` on, rigidly with the newest). Updates `state.est`; returns how far (m) each
-        keyframe moved."""
+        keyframe moved (as applied: those from `rigid_from` on with the newest, not to their graph optimum)."""
         s = self.state
         kf_ids = list(self.store.frame_ids)
         old_kf = est[kf_ids]
@@ -620,7 +620,7 @@ class SlamSystem:
         new_est = follow_keyframes(est, old_kf, new_kf, kf_ids, s.rel_kf, i, rigid_from=rigid_from)
         s.est[: i + 1] = torch.as_tensor(new_est[: i + 1], dtype=s.est.dtype, device=s.est.device)
         self._local_target = None  # the GICP local map sits at the old poses
-        return np.linalg.norm(new_kf[:, :3, 3] - old_kf[:, :3, 3], axis=1)
+        return np.linalg.norm(new_est[kf_ids, :3, 3] - old_kf[:, :3, 3], axis=1)
 
     def _refit(self) -> dict[str, Any]:
         """Re-fit the map from every keyframe's stored rays at their current poses (slam.loop.refit_*); returns its

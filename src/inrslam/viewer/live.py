@@ -11,10 +11,12 @@ measures it).
 from __future__ import annotations
 
 import time
+import warnings
 from typing import Any
 
 import numpy as np
 
+from inrslam.errors import InrslamWarning
 from inrslam.viewer.server import add_mesh
 from inrslam.viewer.shapes import (
     CURRENT_COLOR,
@@ -66,11 +68,18 @@ class LiveViewer:
         self._mesh_at = 0  # frame of the mesh shown
         self._scale = 0.1
         self._up = np.array([0.0, 0.0, 1.0])
+        self.failed: str | None = None  # why the viewer stopped drawing (an error in it), or None
 
     def __call__(self, i: int, n: int, info: dict) -> None:
+        if self.failed is not None:
+            return
         now = time.perf_counter()
         try:
             self._update(i, n, info, now)
+        except Exception as e:  # noqa: BLE001 - the viewer must never stop the SLAM run it shows
+            self.failed = f"{type(e).__name__}: {str(e)[:120]}"
+            warnings.warn(f"the live viewer stopped at frame {i} ({self.failed}); the run goes on", InrslamWarning,
+                          stacklevel=2)
         finally:
             self.busy_s += time.perf_counter() - now
 

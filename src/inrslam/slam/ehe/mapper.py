@@ -43,10 +43,11 @@ def voxel_overlap(current: Tensor, other: Tensor) -> float:
     return float(torch.isin(current, other).sum()) / current.numel()
 
 
-def needs_keyframe(overlap: float, frames_since: int, cfg: EheConfig) -> bool:
+def needs_keyframe(overlap: float, frames_since: int, cfg: EheConfig, n_observed: int = 1) -> bool:
     """New keyframe when the frame shares fewer than `kf_overlap` of its voxels with the last keyframe, or more
-    than `kf_max_gap` frames passed since it."""
-    return overlap < cfg.kf_overlap or frames_since > cfg.kf_max_gap
+    than `kf_max_gap` frames passed since it; never for a frame that observes no voxel (`n_observed` 0: no valid
+    depth), whose keyframe would hold no rays and make the next frame a keyframe too (overlap with nothing)."""
+    return n_observed > 0 and (overlap < cfg.kf_overlap or frames_since > cfg.kf_max_gap)
 
 
 def select_window(current: Tensor, kf_voxels: list[Tensor], window: int, random_fraction: float,

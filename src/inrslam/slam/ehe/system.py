@@ -125,7 +125,8 @@ class EheSystem(SlamSystem):
             s.map_ms.append(ms)
         self._record(i, ms, res, window, alloc.new.numel(), accepted, depth)
         last = len(s.kf_voxels) - 1
-        if i == 0 or needs_keyframe(voxel_overlap(observed, s.kf_voxels[last]), i - s.store.frame_ids[-1], c):
+        if i == 0 or needs_keyframe(voxel_overlap(observed, s.kf_voxels[last]), i - s.store.frame_ids[-1], c,
+                                    observed.numel()):
             self._add_keyframe(i, ft)
             s.kf_voxels.append(observed)
 
