@@ -1,4 +1,5 @@
 import enum
+import re
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -7,6 +8,7 @@ import yaml
 
 from inrslam.config.loader import build_config, config_to_dict, load_config, parse_overrides
 from inrslam.errors import ConfigError
+from inrslam.io.yamlfile import parse_yaml
 
 
 class Mode(str, enum.Enum):
@@ -144,5 +146,49 @@ def test_yaml_syntax_errors_are_one_line_with_their_position(tmp_path):
 
 
 def test_a_mapping_given_to_a_leaf_key_names_where_it_was_given():
-    with pytest.raises(ConfigError, match=r"config key 'data.path' in command-line overrides: expected a string"):
-        load_config(overrides=["data.path=/tmp/x: y"])
+    with pytest.raises(ConfigError, match=r"config key 'slam.track_iters' in command-line overrides: expected an int"):
+        load_config(overrides=["slam.track_iters=x: y"])
+    # a string key keeps the text as typed, colon included (a folder may be named so)
+    assert load_config(overrides=["data.path=/tmp/x: y"]).data.path == "/tmp/x: y"
+
+
+def test_string_keys_from_the_command_line_keep_the_text_typed(tmp_path):
+    # data.path=0001 is a folder named 0001, not the number 1; a quoted text and null are still read as YAML
+    cfg = load_config(overrides=["data.path=0001", "data.sevenscenes.sequence=2023.10", "slam.track_iters=10"],
+                      check_variants=False)
+    assert cfg.data.path == "0001" and cfg.data.sevenscenes.sequence == "2023.10" and cfg.slam.track_iters == 10
+    quoted = load_config(overrides=['data.sevenscenes.sequence="seq-01"'], check_variants=False)
+    assert quoted.data.sevenscenes.sequence == "seq-01"
+    # without a schema every value is a YAML scalar, as before
+    assert parse_overrides(["data.path=0001"]) == {"data": {"path": 1}}
+
+
+def test_duplicate_yaml_key_names_key_and_line(tmp_path):
+    (tmp_path / "c.yaml").write_text("seed: 1\nslam:\n  track_iters: 3\nseed: 2\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml: invalid YAML: duplicate key 'seed' \(first given on line 1\) "
+                                          r"\(line 4, column 1\)"):
+        load_config(tmp_path / "c.yaml")
+    # a merge key (<<) may be overridden by the mapping's own key, as YAML intends
+    assert parse_yaml("b: &b {x: 3}\ns:\n  <<: *b\n  x: 4\n") == {"b": {"x": 3}, "s": {"x": 4}}
+
+
+def test_faithful_decided_by_the_last_layer_setting_it(tmp_path):
+    (tmp_path / "c.yaml").write_text("faithful: true\n")
+    off = load_config(tmp_path / "c.yaml", overrides=["faithful=false"])
+    on = load_config(tmp_path / "c.yaml")
+    assert on.field.faithful and on.sampling.band == 1.5
+    assert not off.faithful and not off.field.faithful and off.sampling.band == 1.0
+
+
+def test_list_element_error_names_where_the_list_was_set(tmp_path):
+    (tmp_path / "c.yaml").write_text("data:\n  intrinsics: [500, x, 320, 240]\n")
+    with pytest.raises(ConfigError, match=r"'data\.intrinsics\[1\]' in .*c\.yaml: expected a number"):
+        load_config(tmp_path / "c.yaml")
+
+
+@pytest.mark.parametrize("key,bad", [("seed", -1), ("eval.seed", 2**63), ("data.builtin.seed", -5),
+                                     ("data.builtin.missing_depth", 1.0)])
+def test_seed_and_hole_fraction_ranges(key, bad):
+    with pytest.raises(ConfigError, match=re.escape(key) + r".*in \[0, "):
+        load_config(overrides=[f"{key}={bad}"])
+    load_config(overrides=[f"{key}=0"])

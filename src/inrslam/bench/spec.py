@@ -128,8 +128,9 @@ def _as_overrides(value: Any, where: str) -> dict:
         if not all(isinstance(v, str) for v in value):
             raise ConfigError(f"{where}: overrides must be KEY=VALUE strings or a mapping, got {value!r}")
         from inrslam.config.loader import parse_overrides
+        from inrslam.config.schema import RunConfig
 
-        return parse_overrides(value)
+        return parse_overrides(value, RunConfig)
     if isinstance(value, dict):
         return _nest(value, where)
     raise ConfigError(f"{where}: overrides must be a mapping or a list of KEY=VALUE, got {value!r}")

@@ -67,18 +67,40 @@ def _load_chain(path: Path, seen: tuple[Path, ...] = ()) -> list[tuple[dict, str
     return chain + [(data, str(path))]
 
 
-def parse_overrides(items: list[str]) -> dict:
-    """['slam.track_iters=10', 'field.encoding=hash'] -> nested dict (values parsed as YAML scalars/lists)."""
+_NULLS = {"null", "Null", "NULL", "~"}
+
+
+def _leaf_type(cls: type | None, parts: list[str]) -> Any:
+    """Schema type of the dotted key `parts` under dataclass `cls` (None when it is not a known leaf)."""
+    tp: Any = cls
+    for p in parts:
+        sec = _section_type(tp) if tp is not None else None
+        if sec is None or p not in {f.name for f in dataclasses.fields(sec)}:
+            return None
+        tp = _hints(sec)[p]
+    return tp
+
+
+def parse_overrides(items: list[str], schema: type | None = None) -> dict:
+    """['slam.track_iters=10', 'field.encoding=hash'] -> nested dict (values parsed as YAML scalars/lists).
+
+    With `schema` (a config dataclass), a key whose type there is a string keeps the text as typed
+    (`data.path=0001` stays '0001', not the number 1), except a YAML null for an optional one and a quoted text."""
     out: dict = {}
     for item in items:
         if "=" not in item:
             raise ConfigError(f"override {item!r}: expected KEY=VALUE, e.g. slam.track_iters=10")
         key, _, raw = item.partition("=")
         key = key.strip().lstrip("-")
-        try:
-            value = parse_yaml(raw) if raw.strip() else ""
-        except yaml.YAMLError:
+        tp, optional = _unwrap_optional(_leaf_type(schema, key.split(".")))
+        text = raw.strip()
+        if tp is str and not (optional and text in _NULLS) and text[:1] not in ("'", '"'):
             value = raw
+        else:
+            try:
+                value = parse_yaml(raw) if text else ""
+            except yaml.YAMLError:
+                value = raw
         node = out
         parts = key.split(".")
         for p in parts[:-1]:
@@ -140,7 +162,7 @@ def _merge(base: dict, new: dict, sources: dict, source: str, prefix: str = "") 
 
 
 def _convert(tp: Any, value: Any, key: str, sources: dict) -> Any:
-    src = sources.get(key, "defaults")
+    src = sources.get(key) or sources.get(key.split("[")[0], "defaults")  # a list element: where its list was set
     tp, optional = _unwrap_optional(tp)
 
     def fail(expected: str) -> ConfigError:
@@ -251,9 +273,10 @@ def load_config(
     if config:
         layers += [(data, source, not _is_preset(source)) for data, source in _load_chain(Path(config))]
     if overrides:
-        ov = parse_overrides(overrides) if isinstance(overrides, list) else overrides
+        ov = parse_overrides(overrides, RunConfig) if isinstance(overrides, list) else overrides
         layers.append((ov, "command-line overrides", True))
-    if any(layer.get("faithful") is True for layer, _, _ in layers):
+    faithful = [layer["faithful"] for layer, _, _ in layers if "faithful" in layer]
+    if faithful and faithful[-1] is True:  # the last layer that sets it decides
         layers.insert(n_preset, (FAITHFUL_LAYER, "faithful=true", False))
     normalised: list[tuple[dict, str]] = []
     user_keys: dict[str, str] = {}  # dotted key -> the last user layer setting it

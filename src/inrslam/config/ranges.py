@@ -33,6 +33,7 @@ def zero_or_at_least(lo: int) -> Rule:
 
 
 NONNEG, POS, COUNT, FRACTION = at_least(0), above(0), at_least(1), between(0.0, 1.0)
+SEED: Rule = (lambda v: 0 <= v < 2**63), "in [0, 2^63)"  # torch.manual_seed's range
 
 RANGES: dict[str, Rule] = {
     # data
@@ -40,7 +41,8 @@ RANGES: dict[str, Rule] = {
     "data.bounds_frames": COUNT, "data.bounds_margin": NONNEG, "data.crop_edge": NONNEG, "data.depth_max": NONNEG,
     "data.builtin.frames": NONNEG, "data.builtin.width": zero_or_at_least(16),
     "data.builtin.height": zero_or_at_least(16), "data.builtin.depth_noise": NONNEG,
-    "data.builtin.missing_depth": between(0.0, 1.0), "data.builtin.motion_scale": POS,
+    "data.builtin.missing_depth": ((lambda v: 0.0 <= v < 1.0), "in [0, 1)"),
+    "data.builtin.motion_scale": POS, "data.builtin.seed": SEED, "seed": SEED, "eval.seed": SEED,
     "data.tum.max_dt_depth": NONNEG, "data.tum.max_dt_pose": NONNEG,
     # field
     "field.levels": COUNT, "field.feature_dim": COUNT, "field.block_coarse": POS, "field.block_fine": POS,

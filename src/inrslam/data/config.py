@@ -14,8 +14,8 @@ class SceneConfig:
     width: int = 0  # image width in pixels; 0 = scene default
     height: int = 0  # image height in pixels; 0 = scene default
     seed: int = 0  # seed of the layout, camera path and sensor noise
-    depth_noise: Optional[float] = None  # std of Gaussian depth noise at 1 m, metres (scaled by depth^2, Kinect-like);
-    # None = the scene's own default (0 for every scene but handheld)
+    depth_noise: Optional[float] = None  # std of depth noise at 1 m, metres (x depth^2, Kinect-like), None = scene's
+    # own default (0.004 for handheld, loop and symmetric, else 0)
     missing_depth: Optional[float] = None  # fraction of pixels with depth dropped to 0 (random holes); None = default
     motion_scale: float = 1.0  # multiplies the camera speed (larger = more motion between frames)
 

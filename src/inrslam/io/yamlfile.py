@@ -13,10 +13,28 @@ import yaml
 from inrslam.errors import ConfigError
 
 _TIMESTAMP = "tag:yaml.org,2002:timestamp"
+_MERGE = "tag:yaml.org,2002:merge"
 
 
 class _Loader(yaml.SafeLoader):
-    """`yaml.SafeLoader` whose implicit resolvers leave out timestamps."""
+    """`yaml.SafeLoader` whose implicit resolvers leave out timestamps and whose mappings refuse a key given twice
+    (PyYAML would keep the last silently)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        first: dict = {}  # key -> mark of its first appearance
+        for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == _MERGE:
+                continue
+            key = self.construct_object(key_node)
+            try:
+                seen = key in first
+            except TypeError:  # unhashable: the base class reports it
+                continue
+            if seen:
+                problem = f"duplicate key {key!r} (first given on line {first[key].line + 1})"
+                raise yaml.constructor.ConstructorError(None, None, problem, key_node.start_mark)
+            first[key] = key_node.start_mark
+        return super().construct_mapping(node, deep=deep)
 
 
 _Loader.yaml_implicit_resolvers = {
