@@ -374,7 +374,8 @@ def test_unusable_run_arguments_are_one_line_errors(tmp_path, case):
     ("slam.track_iters=-1", "'slam.track_iters'"),
     ("slam.map_lr=-0.01", "'slam.map_lr'"),
     ("sampling.n_free=-1", "'sampling.n_free'"),
-    ("sampling.n_free=0 sampling.n_surface=0", "n_free + n_surface >= 1"),
+    ("sampling.n_free=1 sampling.n_surface=0", "n_free + n_surface >= 2"),
+    ("sampling.n_uniform=1", "'sampling.n_uniform'"),
     ("render.density.beta=.nan", "expected a finite number"),
     ("data.builtin.width=1", "'data.builtin.width'"),
 ])

@@ -75,3 +75,33 @@ def test_reproject_image_samples_the_source_camera_at_the_scaled_coordinates():
     assert np.array_equal(reproject_image(image, src, src), image)  # the same camera: unchanged
     with pytest.raises(DataError, match="64x48"):
         reproject_image(image[:10], src, dst)
+
+
+def test_reproject_integer_image_rounds_to_the_nearest_level():
+    rng = np.random.default_rng()
+    src = Intrinsics(*rng.uniform(40, 50, 2), rng.uniform(30, 34), rng.uniform(22, 26), 64, 48)
+    dst = Intrinsics(*rng.uniform(62, 70, 2), 32.0, 24.0, 64, 48)
+    flat = np.full((48, 64, 3), 57, np.uint8)
+    assert np.array_equal(reproject_image(flat, src, dst), flat)  # a flat image stays flat (truncation lost a level)
+    image = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    exact = reproject_image(image.astype(np.float64), src, dst)
+    out = reproject_image(image, src, dst)
+    assert out.dtype == np.uint8 and np.abs(out - exact).max() <= 0.5 + 1e-3  # float32 weights: a hair over 0.5
+    assert abs(float((out - exact).mean())) < 0.05  # unbiased (truncation: -0.5)
+
+
+def test_world_rays_broadcast_one_pose_and_promote_dtypes():
+    from inrslam.geometry.camera import world_rays
+    from inrslam.geometry.se3 import se3_exp
+
+    c2w = se3_exp(torch.randn(1, 6, dtype=torch.float64))[0]
+    d = torch.randn(5, 3)
+    o2, w2 = world_rays(c2w, d)  # (4, 4) pose: float64 result, directions rotated
+    assert o2.shape == w2.shape == (5, 3) and w2.dtype == torch.float64
+    torch.testing.assert_close(w2, d.double() @ c2w[:3, :3].T)
+    assert torch.equal(o2, c2w[:3, 3].expand(5, 3))
+    o1, w1 = world_rays(c2w[None], d)  # (1, 4, 4): the same pose for every direction
+    assert torch.equal(o1, o2) and torch.equal(w1, w2)
+    oN, wN = world_rays(c2w.expand(5, 4, 4), d)
+    torch.testing.assert_close(wN, w2)
+    torch.testing.assert_close(oN, o2)

@@ -123,6 +123,17 @@ def test_neus_alpha_of_linear_section_is_exact():
     assert a.item() == pytest.approx(1 - phi(-0.01) / phi(0.03), rel=1e-3)
 
 
+def test_direct_weights_sum_below_one_far_from_the_surface():
+    # equal s on every sample (no crossing keeps all): Σ w = S b / (S b + 1e-8), b = σ(s/T) σ(-s/T)
+    S = 60
+    z = torch.linspace(0.1, 3.0, S, dtype=torch.float64)[None]
+    for s in (0.0, 1.0, 2.0, 3.0):
+        w = F.direct_weights(torch.full((1, S), s, dtype=torch.float64), z, T)
+        b = 1 / (1 + math.exp(-s / T)) / (1 + math.exp(s / T))
+        assert w.sum().item() == pytest.approx(S * b / (S * b + 1e-8), rel=1e-9)
+    assert w.sum().item() < 1e-3  # s = 3: the 1e-8 dominates, as the docstring says
+
+
 def test_direct_first_surface_and_no_crossing():
     z = torch.linspace(0.5, 3.0, 26)[None]  # spacing 0.1
     # two surfaces: crossing between z = 1.0 and 1.1, then again at 2.0..2.1; inside in between

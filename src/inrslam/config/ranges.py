@@ -53,7 +53,7 @@ RANGES: dict[str, Rule] = {
     # rendering, sampling, losses
     "render.beta_lr": NONNEG, "render.density.beta": POS, "render.neus.fd_eps": POS,
     "render.neus.anneal_end": NONNEG, "render.volsdf.beta_init": POS, "render.volsdf.beta_min": POS,
-    "sampling.n_free": NONNEG, "sampling.n_surface": NONNEG, "sampling.n_uniform": COUNT, "sampling.near": NONNEG,
+    "sampling.n_free": NONNEG, "sampling.n_surface": NONNEG, "sampling.n_uniform": at_least(2), "sampling.near": NONNEG,
     "sampling.far_factor": POS, "sampling.band": POS,
     "loss.color": NONNEG, "loss.depth": NONNEG, "loss.free_space": NONNEG, "loss.center": NONNEG,
     "loss.tail": NONNEG, "loss.center_band": between(0.0, 1.0, open_lo=True),
@@ -148,5 +148,6 @@ def check_ranges(cfg: Any, sources: dict[str, str]) -> None:
     if e is not None and not e.depth_min < e.depth_max:
         raise fail("ehe.depth_min", e.depth_min, f"a number below ehe.depth_max ({e.depth_max:g})")
     s = getattr(cfg, "sampling", None)
-    if s is not None and s.n_free + s.n_surface == 0:
-        raise fail("sampling.n_surface", 0, "at least one sample per ray with depth (n_free + n_surface >= 1)")
+    if s is not None and s.n_free + s.n_surface < 2:
+        raise fail("sampling.n_surface", s.n_surface,
+                   "at least two samples per ray with depth (n_free + n_surface >= 2)")

@@ -3,13 +3,13 @@
 Conventions (written once, converted at the reader boundary):
 - poses are camera-to-world 4x4 (float64) in **OpenCV camera axes** (x right, y down, z forward), metres;
 - RGB is float32 in [0, 1], shape (H, W, 3);
-- depth is float32 metres, shape (H, W), 0 = invalid;
+- depth is float32 metres, shape (H, W), 0 = invalid (`checked_frame` reads NaN / inf as 0);
 - pixel (u, v) = (column, row) with integer coordinates at pixel centres (the usual K convention).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator, Optional, Protocol, runtime_checkable
 
@@ -71,6 +71,30 @@ class RGBDDataset(Protocol):
 
 
 NAN_POSE = np.full((4, 4), np.nan)
+
+
+def checked_frame(frame: Frame, intrinsics: Intrinsics) -> Frame:
+    """`frame` held to the frame contract for a dataset of `intrinsics`: rgb (H, W, 3) and finite, depth (H, W);
+    NaN / inf depth (the "no depth" of float-depth formats) becomes 0. `frame` itself when nothing needs changing.
+
+    Raises:
+        DataError naming the frame's source (or index) and what was expected.
+    """
+    from inrslam.errors import DataError
+
+    H, W = intrinsics.height, intrinsics.width
+    where = frame.source or f"frame {frame.index}"
+    rgb, depth = np.asarray(frame.rgb), np.asarray(frame.depth)
+    if rgb.shape != (H, W, 3):
+        raise DataError(f"{where}: colour image of shape {rgb.shape}, expected ({H}, {W}, 3) as the intrinsics say")
+    if depth.shape != (H, W):
+        raise DataError(f"{where}: depth image of shape {depth.shape}, expected ({H}, {W}) as the intrinsics say")
+    if not np.isfinite(rgb).all():
+        raise DataError(f"{where}: colour image holds NaN or inf values; expected colours in [0, 1]")
+    finite = np.isfinite(depth)
+    if finite.all():
+        return frame
+    return replace(frame, depth=np.where(finite, depth, 0).astype(np.float32))
 
 
 def repeated_streams(prev: Frame, cur: Frame) -> str | None:

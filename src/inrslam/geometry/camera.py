@@ -41,11 +41,16 @@ def world_rays(c2w: Tensor, dirs_cam: Tensor) -> tuple[Tensor, Tensor]:
     """Rotate camera-frame directions into the world.
 
     Args:
-        c2w: (4, 4) or (N, 4, 4) camera-to-world.
+        c2w: (4, 4), (1, 4, 4) or (N, 4, 4) camera-to-world.
         dirs_cam: (N, 3) camera-frame directions.
     Returns:
-        origins (N, 3) metres, directions (N, 3) (same length as the camera-frame ones).
+        origins (N, 3) metres, directions (N, 3) (same length as the camera-frame ones), in the promoted dtype of
+        the two inputs.
     """
+    dtype = torch.promote_types(c2w.dtype, dirs_cam.dtype)
+    c2w, dirs_cam = c2w.to(dtype), dirs_cam.to(dtype)
+    if c2w.dim() == 3 and c2w.shape[0] == 1:
+        c2w = c2w[0]  # one pose for every direction
     R = c2w[..., :3, :3]
     t = c2w[..., :3, 3]
     if c2w.dim() == 2:

@@ -46,7 +46,8 @@ def reproject_image(image: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.n
     """`image` (H, W, ...) taken with intrinsics `src`, as a camera at the same centre and orientation with `dst`
     would see it: (dst.height, dst.width, ...), bilinear, coordinates outside `image` clamped to its edge. Pixel (u, v)
     of the result samples `image` at (src.cx + (u - dst.cx) src.fx / dst.fx, same in v). Registers colour to depth
-    when the two cameras differ in intrinsics only (their baseline neglected)."""
+    when the two cameras differ in intrinsics only (their baseline neglected). Integer images are rounded to the
+    nearest level."""
     img = np.asarray(image)
     wdtype = img.dtype if img.dtype.kind == "f" else np.float32  # weights in the image's precision
     if img.shape[:2] != (src.height, src.width):
@@ -65,4 +66,7 @@ def reproject_image(image: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.n
     rows = img[v0] * (1 - wv.reshape(shape)) + img[v1] * wv.reshape(shape)  # (H', W, ...)
     shape = (1, -1) + (1,) * (img.ndim - 2)
     out = rows[:, u0] * (1 - wu.reshape(shape)) + rows[:, u1] * wu.reshape(shape)
+    if img.dtype.kind in "iu":  # integer images round to the nearest level (a cast would truncate: -0.5 on average)
+        info = np.iinfo(img.dtype)
+        out = np.clip(np.rint(out), info.min, info.max)
     return out.astype(img.dtype, copy=False)

@@ -84,7 +84,8 @@ class DirectWeights(SdfToWeights):
 
     w_i = ŵ_i m_i / (Σ_j ŵ_j m_j + 1e-8),  ŵ_i = σ(s_i/T) σ(-s_i/T),  m_i = 1[z_i < z_k + T],
     k = first sign change of s along the ray. Rays without a sign change keep all samples (the reference uses k = 0,
-    docs/spec.md §13.7; reproduced with `faithful`). Normalised: Σ w = 1, so colour/depth are weighted averages.
+    docs/spec.md §13.7; reproduced with `faithful`). Normalised: Σ w = 1 (while some sample lies within ~2 T of the
+    surface: far from it the 1e-8 dominates), so colour/depth are weighted averages.
     """
 
     def forward(self, sdf, z, dirs, normals, truncation):

@@ -76,7 +76,8 @@ def sample_depths(
     """Sample z-depths along rays, guided by the measured depth (docs/spec.md §5.1; supplementary §1).
 
     Rays with depth D > 0: `n_free` samples near + (far_factor·D - near)·k/(n_free-1) and `n_surface` samples
-    D - band·T + 2·band·T·k/(n_surface-1) (clamped to >= near), merged and sorted.
+    D - band·T + 2·band·T·k/(n_surface-1) (clamped to >= near), merged and sorted (a group of one sample has only
+    its k = 0 sample: near, or D - band·T).
     Rays with D = 0: S samples near + (t_far - near)·k/(S-1), t_far = `aabb_exit` + 0.01 (at least near + 0.01).
     Then stratified jitter (`cfg.jitter`). No gradient flows through the samples.
 

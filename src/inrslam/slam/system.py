@@ -14,7 +14,7 @@ import numpy as np
 import torch
 import trimesh
 
-from inrslam.data.frame import Frame, RGBDDataset, repeated_streams
+from inrslam.data.frame import Frame, RGBDDataset, checked_frame, repeated_streams
 from inrslam.data.given_poses import GivenPoses, load_given_poses
 from inrslam.errors import ConfigError, DataError, TrackingLost
 from inrslam.geometry.se3 import mean_pose
@@ -166,7 +166,7 @@ class SlamSystem:
         if i != self.state.next_frame:
             raise ValueError(f"frame {i} processed out of order (next is {self.state.next_frame})")
         self._records = []
-        self._process(i, self.dataset[i] if frame is None else frame)
+        self._process(i, self._frame(i) if frame is None else checked_frame(frame, self.dataset.intrinsics))
         self.state.next_frame = i + 1
         return self._records
 
@@ -193,6 +193,10 @@ class SlamSystem:
 
     def _event(self, i: int, event: str) -> None:
         self.state.events.append({"frame": i, "event": event})
+
+    def _frame(self, k: int) -> Frame:
+        """Frame k of the dataset, checked (`checked_frame`: shapes, finite colour, NaN / inf depth read as 0)."""
+        return checked_frame(self.dataset[k], self.dataset.intrinsics)
 
     def _process(self, i: int, frame: Frame) -> None:
         cfg = self.cfg.slam
@@ -342,7 +346,7 @@ class SlamSystem:
         correspondence distance (from the prediction), and the previous pose (no motion)."""
         g = dataclasses.replace(self.cfg.slam.gicp, max_corr=self.cfg.slam.lost.recover_max_corr, max_step=1.0,
                                 min_fitness=0.3)
-        wide = self._gicp_onto_previous(i, self.dataset[i - 1], frame, pred, g)
+        wide = self._gicp_onto_previous(i, self._frame(i - 1), frame, pred, g)
         return ([] if wide is None else [wide]) + [self.est[i - 1].clone()]
 
     def _gicp_onto_previous(self, i: int, prev: Frame, frame: Frame, pred: torch.Tensor,
@@ -368,7 +372,7 @@ class SlamSystem:
         else:
             t_idx = i - 1 if g.target is GicpTarget.PREVIOUS else self.state.gicp_kfs[-1]
             if self._target_cloud is None or self._target_cloud[0] != t_idx:
-                t_frame = self.dataset[t_idx]
+                t_frame = self._frame(t_idx)
                 self._target_cloud = (t_idx, prepare_depth(t_frame.depth, t_frame.intrinsics, g))
             target, base = self._target_cloud[1], self.est[t_idx].double().cpu().numpy()
         reg = register(target, cur, np.linalg.inv(base) @ pred.double().cpu().numpy(), g)
@@ -445,13 +449,13 @@ class SlamSystem:
     def _previous_frame(self, i: int) -> Frame:
         """Frame i-1: kept from its processing (slam.photo.skip_stale), or read again (after a resume)."""
         if self._prev_frame is None or self._prev_frame.index != i - 1:
-            return self.dataset[i - 1]
+            return self._frame(i - 1)
         return self._prev_frame
 
     def _photo_pyramid(self, k: int) -> list[PhotoLevel]:
         """Photometric pyramid of keyframe k: kept from when it became one, or rebuilt (after a resume)."""
         if k not in self._photo_pyrs:
-            self._photo_pyrs[k] = self._pyramid(self.dataset[k])
+            self._photo_pyrs[k] = self._pyramid(self._frame(k))
         return self._photo_pyrs[k]
 
     def _renew_photo_keyframe(self, i: int, pyramid: list[PhotoLevel], failed: bool, rec: dict) -> None:
@@ -509,7 +513,7 @@ class SlamSystem:
             pts = []
             for k in ids:
                 if k not in self._kf_points:  # frame 0, or keyframes from before a resume
-                    f = self.dataset[k]
+                    f = self._frame(k)
                     self._kf_points[k] = depth_points(f.depth, f.intrinsics, g)
                 T = self.est[k].double().cpu().numpy()
                 pts.append(self._kf_points[k] @ T[:3, :3].T + T[:3, 3])
@@ -656,7 +660,7 @@ class SlamSystem:
         rc, s = self.cfg.slam.refine, self.state
         t0 = time.perf_counter()
         est = s.est[: i + 1].double().cpu().numpy()
-        links, dropped = photometric_links(lambda k: self._pyramid(self.dataset[k]), est, rc.gaps,
+        links, dropped = photometric_links(lambda k: self._pyramid(self._frame(k)), est, rc.gaps,
                                            self.cfg.slam.photo, rc.max_shift, self.cfg.seed)
         new = refine_trajectory(est, links, rc)
         s.est[: i + 1] = torch.as_tensor(new, dtype=s.est.dtype, device=s.est.device)
@@ -681,7 +685,7 @@ class SlamSystem:
         if not near:
             return
         points = depth_points(frame.depth, frame.intrinsics, g)
-        frames = {c.frame: self.dataset[c.frame] for c in near}
+        frames = {c.frame: self._frame(c.frame) for c in near}
         for c in near:
             c.overlap = overlap(points, est[i], est[c.frame], frames[c.frame].depth, frame.intrinsics,
                                 lc.overlap_tol)
