@@ -130,6 +130,26 @@ def test_estimate_bounds_identity_for_invalid_frame0(tmp_path):
     np.testing.assert_allclose(b, np.stack([np.minimum(pts.min(0), 0), np.maximum(pts.max(0), 0)], 1), atol=1e-9)
 
 
+def test_estimate_bounds_without_frame0_pose_are_in_the_frame_slam_maps_in(tmp_path):
+    """Frame 0 without a pose starts at the identity in the SLAM loop: the other frames are placed relative to the
+    first frame with a pose (before, they stayed in the ground-truth world: a box of two frames' union)."""
+    from data_layouts import make_neuralrgbd
+
+    lay = make_neuralrgbd(tmp_path, n=3, nan_frame=0)
+    ds = DatasetView(open_folder(lay.root, DataConfig(intrinsics=[20, 20, 16, 12])))
+    assert not ds[0].pose_valid and ds[1].pose_valid and ds[2].pose_valid
+    b = estimate_bounds(ds, n_frames=3, margin=0.0, percentile=0.0, points_per_frame=10**9)
+    to_map = np.linalg.inv(ds[1].c2w)
+    poses = [np.eye(4), to_map @ ds[1].c2w, to_map @ ds[2].c2w]
+    pts = np.concatenate([backproject_world(ds[i].depth, ds[i].intrinsics.K, poses[i]) for i in range(3)]
+                         + [np.stack([T[:3, 3] for T in poses])])
+    np.testing.assert_allclose(b, np.stack([pts.min(0), pts.max(0)], 1), atol=1e-9)
+    np.testing.assert_allclose(poses[1], np.eye(4), atol=1e-12)  # the first posed frame sits where frame 0 starts
+    # sampling frame 2 only (n_frames=2 picks 0 and 2): frame 1, the first posed one, still defines the frame
+    b2 = estimate_bounds(ds, n_frames=2, margin=0.0, percentile=0.0, points_per_frame=10**9)
+    np.testing.assert_allclose(b2, b, atol=1e-9)
+
+
 def _builtin(monkeypatch, tmp_path):
     monkeypatch.setenv("INRSLAM_CACHE", str(tmp_path / "cache"))
     cfg = DataConfig(path="builtin:room")

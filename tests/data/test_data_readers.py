@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from data_layouts import H, W, green, make_7scenes, make_neuralrgbd, make_replica, make_scannet, make_tum, write_rgb
@@ -9,7 +11,8 @@ from data_layouts import H, W, green, make_7scenes, make_neuralrgbd, make_replic
 from inrslam.data import DATASETS, DataConfig, Frame, RGBDDataset, open_folder
 from inrslam.data.config import NeuralRgbdConfig, SevenScenesConfig, TumConfig
 from inrslam.data.neuralrgbd import FOCAL
-from inrslam.errors import ConfigError, DataError
+from inrslam.data.timestamps import associate
+from inrslam.errors import ConfigError, DataError, InrslamWarning
 
 JPEG_TOL = 3 / 255
 
@@ -148,6 +151,39 @@ def test_tum_default_intrinsics_by_sequence(tmp_path, monkeypatch):
     assert (fr1.fx, fr1.fy, fr1.cx, fr1.cy, fr1.width) == (517.3, 516.5, 318.6, 255.3, 640)
     fr3 = open_folder(make_tum(tmp_path / "b", scene="rgbd_dataset_freiburg3_office").root).intrinsics
     assert (fr3.fx, fr3.fy) == (535.4, 539.2)
+
+
+def test_tum_camera_named_by_the_sequence_folder_itself(tmp_path, monkeypatch):
+    """A parent folder's or a symlink's name does not choose the camera; the folder's own name does (as given,
+    else the symlink target's), and no name at all warns before taking freiburg1."""
+    monkeypatch.setattr("inrslam.data.base.image_size", lambda p: (640, 480))
+    fr3 = open_folder(make_tum(tmp_path / "freiburg2_runs", scene="rgbd_dataset_freiburg3_office").root).intrinsics
+    assert (fr3.fx, fr3.fy) == (535.4, 539.2)  # was freiburg2's: the parent folder's name matched first
+    target = make_tum(tmp_path / "store", scene="rgbd_dataset_freiburg2_desk").root
+    (tmp_path / "rgbd_dataset_freiburg3_walking").symlink_to(target)
+    fr3 = open_folder(tmp_path / "rgbd_dataset_freiburg3_walking").intrinsics  # the name as given
+    assert (fr3.fx, fr3.fy) == (535.4, 539.2)
+    (tmp_path / "mine").symlink_to(target)
+    fr2 = open_folder(tmp_path / "mine").intrinsics  # the given name names none: the target's
+    assert (fr2.fx, fr2.fy) == (520.9, 521.0)
+    plain = make_tum(tmp_path / "c", scene="kitchen").root
+    with pytest.warns(InrslamWarning, match=r"kitchen: the folder name names no TUM camera .* data\.intrinsics"):
+        fr1 = open_folder(plain).intrinsics
+    assert (fr1.fx, fr1.fy) == (517.3, 516.5)
+
+
+def test_tum_reader_pairs_colour_and_depth_closest_first_one_to_one(tmp_path):
+    # the reader pairs colour with depth by the evaluation's association (one rule, `data.timestamps`):
+    # colour 1's nearest depth (0.012) goes to colour 0, which is closer; colour 1 still pairs with 0.049
+    ia, ib = associate(np.array([0.0, 0.030]), np.array([0.012, 0.049]), 0.02)
+    assert ia.tolist() == [0, 1] and ib.tolist() == [0, 1]
+    root = make_tum(tmp_path, n=2).root  # the reader on those stamps (relisting its two colour and depth images)
+    rgb = [ln.split()[1] for ln in (root / "rgb.txt").read_text().splitlines()[1:3]]
+    dep = [ln.split()[1] for ln in (root / "depth.txt").read_text().splitlines()[1:3]]
+    (root / "rgb.txt").write_text(f"0.000 {rgb[0]}\n0.030 {rgb[1]}\n")
+    (root / "depth.txt").write_text(f"0.012 {dep[0]}\n0.049 {dep[1]}\n")
+    ds = open_folder(root, DataConfig(intrinsics=[20, 20, 16, 12]))
+    assert len(ds) == 2 and ds.dropped_unpaired == 0 and [p.name for p in ds._depth] == [Path(d).name for d in dep]
 
 
 def test_7scenes_subfolder_intrinsics_and_65535(tmp_path):

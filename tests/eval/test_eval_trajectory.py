@@ -190,13 +190,16 @@ def test_associate_nearest_one_to_one():
     ia, ib = associate(a, b, max_diff=0.004)
     np.testing.assert_array_equal(ia, [1])
     np.testing.assert_array_equal(ib, [5])
+    ia, ib = associate(a, a[::-1].copy(), max_diff=0.0)  # tolerance 0: equal times pair (none did with a strict <)
+    np.testing.assert_array_equal(ia, [0, 1, 2, 3])
+    np.testing.assert_array_equal(ib, [3, 2, 1, 0])
 
 
 def test_associate_matches_greedy_brute_force():
     rng = np.random.default_rng(0)
     for _ in range(50):
         a, b = np.sort(rng.uniform(0, 1, 30)), rng.uniform(0, 1, 25)
-        pairs = sorted((abs(x - y), i, j) for i, x in enumerate(a) for j, y in enumerate(b) if abs(x - y) < 0.03)
+        pairs = sorted((abs(x - y), i, j) for i, x in enumerate(a) for j, y in enumerate(b) if abs(x - y) <= 0.03)
         used_a, used_b, ref = set(), set(), []
         for _, i, j in pairs:
             if i not in used_a and j not in used_b:

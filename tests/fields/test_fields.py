@@ -286,6 +286,15 @@ def test_bad_config_raises_config_error():
         build_field(FieldConfig(), np.array([[0, 1], [1, 0], [0, 1]]))
     with pytest.raises(ConfigError, match="gamma"):
         build_field(FieldConfig(gamma="fourier", **SMALL), BOX)
+    # values `load_config` refuses are refused when a FieldConfig is built in code, too (not a late traceback)
+    with pytest.raises(ConfigError, match=r"field\.geo_feat_dim: expected a positive integer, got -1"):
+        build_field(FieldConfig(encoding="dense", coupling="coupled", geo_feat_dim=-1, **SMALL), BOX)
+    with pytest.raises(ConfigError, match=r"field\.grid_init: expected a finite number >= 0"):
+        build_field(FieldConfig(grid_init=-1e-4, **SMALL), BOX)
+    with pytest.raises(ConfigError, match=r"field\.plane_init_std: expected a finite number >= 0, got nan"):
+        build_field(FieldConfig(encoding="triplane", plane_init_std=float("nan"), **SMALL), BOX)
+    with pytest.raises(ConfigError, match=r"field\.mlp\.precision: 'fp16' is not one of float32, bfloat16"):
+        build_field(FieldConfig(encoding="mlp", mlp=MlpConfig(precision="fp16")), BOX)
 
 
 def test_numba_kernel_rejects_non_cpu_dtype():

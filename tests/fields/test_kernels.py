@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 import torch
 
+from inrslam.fields.config import FieldConfig
 from inrslam.fields.kernels import TableLayout, interp_torch, multilinear
+from inrslam.fields.models import build_field
 from inrslam.fields.resolution import grid_entries, line_entries, plane_entries, plane_sizes
 
 EXTENT = np.array([1.2, 1.0, 0.8])
@@ -340,3 +342,19 @@ def test_unrolled_lines_and_planes_are_bit_identical_to_the_corner_loop(dtype):
     for a, b in ((out, out_ref), (gx, gx_ref), (gt, gt_ref)):
         assert np.array_equal(_bits(a), _bits(b))
     assert np.abs(gx).sum() > 0 and np.all(np.isfinite(out))
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_auto_runs_the_reference_on_half_precision_tables(dtype):
+    """`kernel=auto` picks numba only for float32 / float64 tables (it used to pick it and then refuse)."""
+    bounds = np.array([[0.0, 1.0]] * 3)
+    x = torch.rand(16, 3, generator=torch.Generator().manual_seed(3)).to(dtype)
+    out = {}
+    for kernel in ("auto", "torch"):
+        torch.manual_seed(0)
+        field = build_field(FieldConfig(encoding="dense", kernel=kernel), bounds).to(dtype)
+        out[kernel] = field(x).sdf
+    assert out["auto"].dtype == dtype and torch.equal(out["auto"], out["torch"])
+    with pytest.raises(ValueError, match="float32/float64 tables"):
+        torch.manual_seed(0)
+        build_field(FieldConfig(encoding="dense", kernel="numba"), bounds).to(dtype)(x)

@@ -64,6 +64,28 @@ def test_pose_file_is_anchored_at_frame_zero_unless_asked_not_to(dataset, tmp_pa
         load_given_poses(str(path), dataset, tolerance=0.001)
 
 
+def test_pose_file_without_frame0_ground_truth_is_anchored_at_the_identity(dataset, tmp_path):
+    """Frame 0 without ground truth: a SLAM run starts it at the identity (and the estimated box is in that frame),
+    so a pose file is moved there too instead of staying in its own world."""
+
+    class NoFirstPose:
+        timestamps, poses = dataset.timestamps, dataset.poses
+        pose_valid = np.r_[False, np.ones(len(dataset.poses) - 1, bool)]
+
+        def __len__(self):
+            return len(self.poses)
+
+    gt, ts = dataset.poses, dataset.timestamps
+    A = rigid(np.random.default_rng(1))
+    path = tmp_path / "other.txt"
+    write_tum(path, ts, A @ gt)
+    given = load_given_poses(str(path), NoFirstPose(), tolerance=0.01)
+    assert given.source["anchored"]
+    np.testing.assert_allclose(given.c2w[0], np.eye(4), atol=1e-9)
+    expected = np.linalg.inv(gt[0]) @ gt  # the trajectory's own shape, frame 0 at the identity
+    np.testing.assert_allclose(given.c2w, expected, atol=1e-6)
+
+
 def test_bad_pose_files_fail_with_one_line_naming_file_and_line(dataset, tmp_path):
     nan = tmp_path / "nan.txt"
     nan.write_text("0.0 0 0 0 0 0 0 1\n0.1 nan 0 0 0 0 0 1\n")

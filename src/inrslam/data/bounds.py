@@ -30,19 +30,27 @@ def estimate_bounds(
     a camera that travels still gets a box covering what it will see.
 
     Back-projects a pixel subsample of each frame's depth with its ground-truth pose (frames with an invalid pose
-    are skipped, except frame 0 which then uses the identity), takes the `percentile` / 100 - `percentile`
-    percentiles per axis (robust to flying pixels), grows the box to include the camera centres and adds `margin`
-    on every side.
+    are skipped), takes the `percentile` / 100 - `percentile` percentiles per axis (robust to flying pixels), grows
+    the box to include the camera centres and adds `margin` on every side. When frame 0 has no pose, the SLAM loop
+    starts it at the identity: the box is then in that frame, frame 0 at the identity and the others' poses taken
+    relative to the first frame that has one (as if it sat where frame 0 is; the motion between them is the error).
 
     Returns:
         (3, 2) float64 [[xmin, xmax], [ymin, ymax], [zmin, zmax]], metres.
     """
     pts, centres = [], []
     idx = np.unique(np.linspace(0, len(dataset) - 1, min(max(n_frames, 1), len(dataset))).round().astype(int))
+    to_map = np.eye(4)  # ground-truth world -> the frame the SLAM loop maps in
+    first = dataset[0]
+    if not _has_pose(first):
+        k0 = _first_posed(dataset, idx)
+        if k0 is not None:
+            to_map = np.linalg.inv(dataset[k0].c2w)
+            idx = np.union1d(idx, [k0])
     for i in idx.tolist():
-        f = dataset[i]
-        if f.pose_valid and np.all(np.isfinite(f.c2w)):
-            c2w = f.c2w
+        f = first if i == 0 else dataset[i]
+        if _has_pose(f):
+            c2w = to_map @ f.c2w
         elif i == 0:
             c2w = np.eye(4)
         else:
@@ -62,3 +70,19 @@ def estimate_bounds(
     c = np.stack(centres)
     lo, hi = np.minimum(lo, c.min(0)), np.maximum(hi, c.max(0))
     return np.stack([lo - margin, hi + margin], axis=1)
+
+
+def _has_pose(f) -> bool:
+    return bool(f.pose_valid) and bool(np.all(np.isfinite(f.c2w)))
+
+
+def _first_posed(dataset: RGBDDataset, idx: np.ndarray) -> int | None:
+    """The first frame with a ground-truth pose: from the dataset's `pose_valid` table when it has one (no images
+    read), else the first of the sampled frames `idx`; None when there is none."""
+    valid = getattr(dataset, "pose_valid", None)
+    if valid is not None and not callable(valid) and len(valid) == len(dataset):
+        for k in np.flatnonzero(np.asarray(valid, dtype=bool)).tolist():
+            if _has_pose(dataset[k]):
+                return int(k)
+        return None
+    return next((int(k) for k in idx.tolist() if _has_pose(dataset[k])), None)

@@ -69,9 +69,9 @@ def load_given_poses(spec: str, dataset: RGBDDataset, tolerance: float = 0.02, a
         spec: "gt" (the dataset's ground truth: every frame must have one) or a TUM file
             (`timestamp tx ty tz qx qy qz qw` per line, camera-to-world).
         tolerance: seconds; each frame takes the file's pose nearest in time, at most this far.
-        anchor: move a file's trajectory rigidly so frame 0 sits at the dataset's frame-0 ground-truth pose (where
-            a SLAM run starts, so meshes and trajectories compare with the ground truth); skipped when frame 0 has
-            no ground truth or the trajectory already starts there.
+        anchor: move a file's trajectory rigidly so frame 0 sits where a SLAM run starts it: the dataset's frame-0
+            ground-truth pose (so meshes and trajectories compare with the ground truth), or the identity when
+            frame 0 has none (where `estimate_bounds` puts it too); skipped when the trajectory already starts there.
     """
     ts, gt, valid = _frame_table(dataset)
     if spec == GT:
@@ -91,8 +91,9 @@ def load_given_poses(spec: str, dataset: RGBDDataset, tolerance: float = 0.02, a
     source: dict[str, Any] = {"source": "file", "path": str(path.resolve()),
                               "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "tolerance_s": tolerance,
                               "anchored": False}
-    if anchor and valid[0] and np.isfinite(gt[0]).all():
-        A = gt[0] @ np.linalg.inv(c2w[0])
+    if anchor:  # where a SLAM run starts frame 0: its ground truth, else the identity
+        start = gt[0] if valid[0] and np.isfinite(gt[0]).all() else np.eye(4)
+        A = start @ np.linalg.inv(c2w[0])
         if not np.allclose(A, np.eye(4), atol=1e-6):
             c2w = A @ c2w
             source["anchored"] = True

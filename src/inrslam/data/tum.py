@@ -7,15 +7,19 @@ Layout::
     <seq>/groundtruth.txt    "timestamp tx ty tz qx qy qz qw" (scalar-last quaternion), c2w of the colour camera,
                              OpenCV axes; optional (also accepted: pose.txt)
 
-Each colour frame is paired with the nearest depth frame (|dt| <= `data.tum.max_dt_depth`, one-to-one); colour frames
-without depth are dropped. The pose is the nearest ground-truth sample within `data.tum.max_dt_pose`, else invalid.
+Colour and depth frames are paired one-to-one as TUM's associate.py does (`data.timestamps.associate`: every
+pair within `data.tum.max_dt_depth`, closest first); colour frames without depth are dropped. The pose is the
+nearest ground-truth sample within `data.tum.max_dt_pose`, else invalid.
 Intrinsics: `intrinsics.json` (fx, fy, cx, cy, width, height, depth_scale; written by our TUM exporter) if present,
-else the published ROS-default calibration of freiburg1/2/3 chosen by the folder name (freiburg1 otherwise);
+else the published ROS-default calibration of freiburg1/2/3 named by the sequence folder's own name (not its
+parents'; freiburg1 with a warning otherwise);
 lens distortion is not corrected.
 """
 
 from __future__ import annotations
 
+import os
+import warnings
 from pathlib import Path
 from typing import Optional
 
@@ -25,7 +29,8 @@ from inrslam.data.base import FolderDataset, checked_depth_scale, first_existing
 from inrslam.data.frame import NAN_POSE, Intrinsics
 from inrslam.data.posefiles import parse_floats, read_lines
 from inrslam.data.registry import DATASETS
-from inrslam.errors import ConfigError, DataError
+from inrslam.data.timestamps import associate
+from inrslam.errors import ConfigError, DataError, InrslamWarning
 from inrslam.io.trajectory import quat_rotation
 
 TUM_INTRINSICS = {
@@ -113,22 +118,13 @@ class TUMDataset(FolderDataset):
         order_r, order_d = np.argsort(t_rgb, kind="stable"), np.argsort(t_d, kind="stable")
         t_rgb, rgb_names = t_rgb[order_r], [rgb_names[k] for k in order_r]
         t_d, d_names = t_d[order_d], [d_names[k] for k in order_d]
-        j, dt = nearest(t_rgb, t_d)
-        keep = dt <= max_dt_d
-        # one-to-one: when several colour frames pick the same depth frame, keep the closest
-        best: dict[int, int] = {}
-        for i in np.flatnonzero(keep):
-            if j[i] not in best or dt[i] < dt[best[j[i]]]:
-                best[int(j[i])] = int(i)
-        pairs = sorted((i, d) for d, i in best.items())
-        if not pairs:
+        ri, di = associate(t_rgb, t_d, max_dt_d)
+        if not len(ri):
             raise DataError(
                 f"{rgb_list} / {depth_list}: no colour and depth timestamps within {max_dt_d} s of each other "
                 f"(colour {t_rgb[0]:.3f}..{t_rgb[-1]:.3f} s, depth {t_d[0]:.3f}..{t_d[-1]:.3f} s); "
                 "expected the lists of one sequence (or raise data.tum.max_dt_depth)"
             )
-        ri = np.array([i for i, _ in pairs])
-        di = np.array([d for _, d in pairs])
         self._timestamps = t_rgb[ri]
         self._rgb = [self.root / rgb_names[i] for i in ri]
         self._depth = [self.root / d_names[d] for d in di]
@@ -157,6 +153,17 @@ class TUMDataset(FolderDataset):
                 self.depth_scale = checked_depth_scale(cam["depth_scale"], f"{cam_file}: depth_scale")
             w, h = int(cam.get("width", 640)), int(cam.get("height", 480))
             return Intrinsics(cam["fx"], cam["fy"], cam["cx"], cam["cy"], w, h)
-        name = str(self.root.resolve()).lower()
-        cam = next((v for key, v in TUM_INTRINSICS.items() if key in name), TUM_INTRINSICS["freiburg1"])
-        return Intrinsics(*cam, 640, 480)
+        return Intrinsics(*self._camera_by_name(), 640, 480)
+
+    def _camera_by_name(self) -> tuple[float, float, float, float]:
+        """The TUM_INTRINSICS row the sequence folder's own name names (as given, else its symlink target's);
+        freiburg1 with a warning when neither names a camera (and data.intrinsics does not say)."""
+        for name in (Path(os.path.abspath(self.root)).name, self.root.resolve().name):
+            key = next((k for k in TUM_INTRINSICS if k in name.lower()), None)
+            if key is not None:
+                return TUM_INTRINSICS[key]
+        if self.cfg.intrinsics is None:
+            warnings.warn(f"{self.root}: the folder name names no TUM camera (freiburg1/2/3) and there is no "
+                          "intrinsics.json; using freiburg1's intrinsics (set data.intrinsics for another camera)",
+                          InrslamWarning, stacklevel=2)
+        return TUM_INTRINSICS["freiburg1"]

@@ -8,8 +8,10 @@ gradient along the clamped axes), while the positional encoding γ sees the uncl
 from __future__ import annotations
 
 import contextlib
+import enum
+import math
 from dataclasses import replace
-from typing import NamedTuple, Optional, cast
+from typing import Any, NamedTuple, Optional, cast
 
 import numpy as np
 import torch
@@ -334,21 +336,26 @@ def _validate(cfg: FieldConfig, bounds: np.ndarray) -> np.ndarray:
     if cfg.encoding not in ENCODINGS:
         raise ConfigError(f"field.encoding: {ENCODINGS.unknown_message(cfg.encoding)}")
     for key, value in (("levels", cfg.levels), ("feature_dim", cfg.feature_dim), ("hidden_dim", cfg.hidden_dim),
-                       ("mlp.width", cfg.mlp.width), ("mlp.depth", cfg.mlp.depth)):
+                       ("geo_feat_dim", cfg.geo_feat_dim), ("mlp.width", cfg.mlp.width), ("mlp.depth", cfg.mlp.depth)):
         if int(value) < 1:
             raise ConfigError(f"field.{key}: expected a positive integer, got {value!r}")
     for key in ("block_coarse", "block_fine", "app_block_coarse", "app_block_fine", "plane_block_coarse",
                 "truncation"):
         if not float(getattr(cfg, key)) > 0:
             raise ConfigError(f"field.{key}: expected a positive length in metres, got {getattr(cfg, key)!r}")
+    for key in ("grid_init", "plane_init_std"):
+        if not (math.isfinite(float(getattr(cfg, key))) and float(getattr(cfg, key)) >= 0):
+            raise ConfigError(f"field.{key}: expected a finite number >= 0, got {getattr(cfg, key)!r}")
     if not 1 <= cfg.log2_hashmap_size <= 30:
         raise ConfigError(f"field.log2_hashmap_size: expected 1..30, got {cfg.log2_hashmap_size}")
-    for key, enum_t in (("coupling", Coupling), ("kernel", KernelChoice), ("decoder_kernel", KernelChoice)):
+    choices: tuple[tuple[str, type[enum.Enum], Any], ...] = (
+        ("coupling", Coupling, cfg.coupling), ("kernel", KernelChoice, cfg.kernel),
+        ("decoder_kernel", KernelChoice, cfg.decoder_kernel), ("mlp.precision", MlpPrecision, cfg.mlp.precision))
+    for key, enum_t, choice in choices:
         try:
-            enum_t(getattr(cfg, key))
+            enum_t(choice)
         except ValueError:
-            raise ConfigError(f"field.{key}: {getattr(cfg, key)!r} is not one of "
-                              f"{', '.join(e.value for e in enum_t)}") from None
+            raise ConfigError(f"field.{key}: {choice!r} is not one of {', '.join(e.value for e in enum_t)}") from None
     return b
 
 

@@ -22,13 +22,13 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from inrslam.fields.kernels.function import cpu_floats, resolve_kernel
+from inrslam.fields.kernels.function import cpu_floats, fused_backward, resolve_kernel
 
 
 def plane_sum_torch(f: torch.Tensor, levels: int) -> torch.Tensor:
     """The reference: plane features f (N, 3L, F) (level-major) -> (N, L·F), the sum of each level's three."""
     n = f.shape[0]
-    return f.reshape(n, levels, 3, f.shape[2]).sum(2).reshape(n, -1)
+    return f.reshape(n, levels, 3, f.shape[2]).sum(2).reshape(n, levels * f.shape[2])
 
 
 def vm_product_torch(f: torch.Tensor, levels: int, faithful: bool) -> torch.Tensor:
@@ -37,7 +37,7 @@ def vm_product_torch(f: torch.Tensor, levels: int, faithful: bool) -> torch.Tens
     planes = f[:, : 3 * levels].reshape(n, levels, 3, F)
     lines = f[:, 3 * levels :].reshape(n, levels, 3, F)
     out = planes.sum(2) * lines.sum(2) if faithful else (planes * lines).sum(2)
-    return out.reshape(n, -1)
+    return out.reshape(n, levels * F)
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -106,7 +106,8 @@ def _vm_backward(f, g, levels, faithful, gf):  # pragma: no cover - numba
 
 
 class PlaneSumFn(torch.autograd.Function):
-    """`plane_sum_torch` in one numba pass each way (once differentiable)."""
+    """`plane_sum_torch` in one numba pass each way (once differentiable; a ``create_graph`` backward
+    differentiates the reference, `function.fused_backward`)."""
 
     @staticmethod
     def forward(ctx, f, levels):
@@ -114,10 +115,12 @@ class PlaneSumFn(torch.autograd.Function):
         out = np.empty((fc.shape[0], levels, fc.shape[2]), dtype=fc.numpy().dtype)
         _sum_forward(fc.numpy(), levels, out)
         ctx.levels, ctx.shape = levels, fc.shape
-        return torch.from_numpy(out).reshape(fc.shape[0], -1)
+        ctx.save_for_backward(f)
+        ctx.n_own, ctx.args = 0, (levels,)
+        return torch.from_numpy(out).reshape(fc.shape[0], levels * fc.shape[2])
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
+    @fused_backward(plane_sum_torch)
     def backward(ctx, g):
         n, _, n_feat = ctx.shape
         gc = g.detach().reshape(n, ctx.levels, n_feat).contiguous()
@@ -127,21 +130,23 @@ class PlaneSumFn(torch.autograd.Function):
 
 
 class VmProductFn(torch.autograd.Function):
-    """`vm_product_torch` in one numba pass each way (once differentiable)."""
+    """`vm_product_torch` in one numba pass each way (once differentiable; a ``create_graph`` backward
+    differentiates the reference)."""
 
     @staticmethod
     def forward(ctx, f, levels, faithful):
         fc = f.detach().contiguous()
         out = np.empty((fc.shape[0], levels, fc.shape[2]), dtype=fc.numpy().dtype)
         _vm_forward(fc.numpy(), levels, faithful, out)
-        ctx.save_for_backward(fc)
+        ctx.save_for_backward(fc, f)
         ctx.levels, ctx.faithful = levels, faithful
-        return torch.from_numpy(out).reshape(fc.shape[0], -1)
+        ctx.n_own, ctx.args = 1, (levels, faithful)
+        return torch.from_numpy(out).reshape(fc.shape[0], levels * fc.shape[2])
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
+    @fused_backward(vm_product_torch)
     def backward(ctx, g):
-        (fc,) = ctx.saved_tensors
+        fc = ctx.saved_tensors[0]
         gc = g.detach().to(fc.dtype).reshape(fc.shape[0], ctx.levels, fc.shape[2]).contiguous()
         gf = np.empty(fc.shape, dtype=fc.numpy().dtype)
         _vm_backward(fc.numpy(), gc.numpy(), ctx.levels, ctx.faithful, gf)

@@ -207,6 +207,42 @@ def second_order_active() -> bool:
     return _SCOPES.second_order > 0
 
 
+def reference_grads(reference, inputs: tuple, needs: tuple, grads: tuple) -> tuple:
+    """The backward of a fused once-differentiable Function inside a ``create_graph`` backward (grad mode on):
+    the gradients of ``reference(*inputs)`` against the output gradients `grads`, differentiable, so that second
+    derivatives (an eikonal loss on the normals) reach every input instead of being dropped. `inputs` are the
+    Function's own inputs as saved (their graphs intact; non-tensors passed through), `needs` its
+    ``ctx.needs_input_grad``; None where a gradient is not needed."""
+    with torch.enable_grad():
+        out = reference(*inputs)
+    outs = out if isinstance(out, tuple) else (out,)
+    wanted = [t for t, n in zip(inputs, needs) if n]
+    got = iter(torch.autograd.grad(outs, wanted, grads, create_graph=True, allow_unused=True) if wanted else ())
+    return tuple(next(got) if n else None for n in needs)
+
+
+def fused_backward(reference):
+    """Decorator for the backward of a fused Function: the decorated (numba, once differentiable) backward, or,
+    inside a ``create_graph`` backward, `reference_grads` of `reference` on the Function's inputs. The forward saves
+    its inputs as given after its own tensors: ``ctx.save_for_backward(*own, *inputs)``, ``ctx.n_own = len(own)``,
+    and its non-tensor arguments (the last ones) as ``ctx.args``."""
+    once = torch.autograd.function.once_differentiable
+
+    def wrap(fn):
+        fused = once(fn)
+
+        def backward(ctx, *grads):
+            if torch.is_grad_enabled():
+                inputs = tuple(ctx.saved_tensors[ctx.n_own:]) + tuple(ctx.args)
+                return reference_grads(reference, inputs, ctx.needs_input_grad, grads)
+            return fused(ctx, *grads)
+
+        backward.__doc__ = fn.__doc__
+        return backward
+
+    return wrap
+
+
 def resolve_kernel(backend: str, fusable: bool, what: str, needs: str) -> str:
     """The backend a fused kernel's dispatcher runs ("numba" or "torch"): the reference wherever a second-order
     backward may follow (inside ``second_order()``: NeuS normals), else numba for "auto" where ``fusable``; an
@@ -469,7 +505,8 @@ def multilinear(xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, back
 
     A point with a NaN coordinate gets NaN features and no gradient (a loss over it turns NaN, which the SLAM loop
     treats as a failed step), on every backend.
-    backend: "numba" (fused CPU kernel), "torch" (reference, any device) or "auto" (numba on CPU tensors).
+    backend: "numba" (fused CPU kernel), "torch" (reference, any device) or "auto" (numba on CPU float32 / float64
+        tables).
     sparse: table-gradient layout of the fused path; None = sparse iff M > DENSE_GRAD_MAX_ROWS.
     touched: rows of the fused path's table gradient (`TouchedRows`): "read" every row read with a non-zero weight
     (a zero-valued gradient row included), "gradient" only the rows some point with a non-zero output gradient
@@ -478,8 +515,9 @@ def multilinear(xn: torch.Tensor, table: torch.Tensor, layout: TableLayout, back
     """
     if touched not in ("read", "gradient"):
         raise ValueError(f"unknown touched rows {touched!r} (choices: read, gradient)")
-    if backend == "auto":
-        backend = "numba" if table.device.type == "cpu" else "torch"
+    if backend == "auto":  # numba where it runs: CPU float32 / float64 tables (bfloat16 / half: the reference)
+        fusable = table.device.type == "cpu" and table.dtype in (torch.float32, torch.float64)
+        backend = "numba" if fusable else "torch"
     if backend not in ("torch", "numba"):
         raise ValueError(f"unknown kernel backend {backend!r} (choices: auto, torch, numba)")
     if xn.dim() != 2 or xn.shape[-1] != 3:

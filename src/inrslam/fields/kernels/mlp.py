@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from inrslam.fields.kernels.function import cpu_floats, resolve_kernel
+from inrslam.fields.kernels.function import cpu_floats, fused_backward, resolve_kernel
 from inrslam.fields.kernels.subnormal import flush_inplace, tiny_of
 
 #: Samples per block of the parallel loops at most (`block_rows`: fixed by the layer shapes, so that the weight
@@ -181,10 +181,17 @@ def mlp2_torch(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Ten
     return torch.relu(x @ w1.t()) @ w2.t()
 
 
+def mlp2_split_torch(xa: torch.Tensor, xb: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor,
+                     n_a: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reference of `Mlp2SplitFn`: `mlp2_torch` of [xa, xb], split into its first `n_a` columns and the rest."""
+    y = mlp2_torch(torch.cat([xa, xb], dim=1), w1, w2)
+    return y[:, :n_a], y[:, n_a:]
+
+
 class Mlp2Fn(torch.autograd.Function):
     """Fused ``relu(x W1^T) W2^T`` on CPU tensors: forward and one backward (to x and to both weights, each only
     when needed; subnormal output and input gradients count as zero). Once differentiable: a second-order backward
-    (``create_graph``) must use ``mlp2_torch``."""
+    (``create_graph``) differentiates ``mlp2_torch`` instead (`function.fused_backward`)."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
@@ -193,13 +200,14 @@ class Mlp2Fn(torch.autograd.Function):
         w2c = w2.detach().contiguous()
         out = np.empty((xc.shape[0], w2c.shape[0]), dtype=w1t.numpy().dtype)
         _forward(xc.numpy(), w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), out)
-        ctx.save_for_backward(xc, w1t, w2c)
+        ctx.save_for_backward(xc, w1t, w2c, x, w1, w2)
+        ctx.n_own, ctx.args = 3, ()
         return torch.from_numpy(out)
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
+    @fused_backward(mlp2_torch)
     def backward(ctx, gy: torch.Tensor):
-        xc, w1t, w2c = ctx.saved_tensors
+        xc, w1t, w2c = ctx.saved_tensors[:3]
         need_x, need_w1, need_w2 = ctx.needs_input_grad
         need_w = need_w1 or need_w2
         n, n_in = xc.shape
@@ -237,7 +245,7 @@ class Mlp2SplitFn(torch.autograd.Function):
     """``Mlp2Fn`` on the input [xa, xb] with the output split as [ya, yb] (the first `n_a` columns, the rest),
     without the concatenated (N, I) input, the (N, O) output and their gradients ever existing: each kernel block
     assembles its rows in cache, so the values equal ``Mlp2Fn``'s on the concatenation bit for bit, and the input
-    gradients come back as two contiguous arrays. Once differentiable, as ``Mlp2Fn``."""
+    gradients come back as two contiguous arrays. Once differentiable, as ``Mlp2Fn`` (reference: `mlp2_split_torch`)."""
 
     @staticmethod
     def forward(ctx, xa: torch.Tensor, xb: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor,
@@ -249,13 +257,14 @@ class Mlp2SplitFn(torch.autograd.Function):
         ya = np.empty((xac.shape[0], n_a), dtype=dtype)
         yb = np.empty((xac.shape[0], w2c.shape[0] - n_a), dtype=dtype)
         _forward_split(xac.numpy(), xbc.numpy(), w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), ya, yb)
-        ctx.save_for_backward(xac, xbc, w1t, w2c)
+        ctx.save_for_backward(xac, xbc, w1t, w2c, xa, xb, w1, w2)
+        ctx.n_own, ctx.args = 4, (n_a,)
         return torch.from_numpy(ya), torch.from_numpy(yb)
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
+    @fused_backward(mlp2_split_torch)
     def backward(ctx, gya: torch.Tensor, gyb: torch.Tensor):
-        xac, xbc, w1t, w2c = ctx.saved_tensors
+        xac, xbc, w1t, w2c = ctx.saved_tensors[:4]
         need_xa, need_xb, need_w1, need_w2 = ctx.needs_input_grad[:4]
         need_w = need_w1 or need_w2
         n = xac.shape[0]

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from inrslam.fields.kernels.function import cpu_floats
+from inrslam.fields.kernels.function import cpu_floats, fused_backward
 from inrslam.fields.kernels.mlp import (
     FASTMATH,
     blas_fits,
@@ -119,7 +119,7 @@ def mlp3_torch(x: torch.Tensor, w1: torch.Tensor, b1: torch.Tensor, w2: torch.Te
 class Mlp3Fn(torch.autograd.Function):
     """Fused three-layer MLP with biases on CPU tensors: forward and one backward (to x and to the weights and
     biases, each only when needed; subnormal output and input gradients count as zero). Once differentiable: a
-    second-order backward must use ``mlp3_torch``."""
+    second-order backward differentiates ``mlp3_torch`` instead (`function.fused_backward`)."""
 
     @staticmethod
     def forward(ctx, x, w1, b1, w2, b2, w3, b3):
@@ -129,13 +129,14 @@ class Mlp3Fn(torch.autograd.Function):
         out = np.empty((xc.shape[0], w3.shape[0]), dtype=wt[0].numpy().dtype)
         _forward(xc.numpy(), wt[0].numpy(), bs[0].numpy(), wt[1].numpy(), bs[1].numpy(), wt[2].numpy(),
                  bs[2].numpy(), block_rows(*wt), out)
-        ctx.save_for_backward(xc, *wt, *bs)
+        ctx.save_for_backward(xc, *wt, *bs, x, w1, b1, w2, b2, w3, b3)
+        ctx.n_own, ctx.args = 7, ()
         return torch.from_numpy(out)
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
+    @fused_backward(mlp3_torch)
     def backward(ctx, gy: torch.Tensor):
-        xc, w1t, w2t, w3t, b1, b2, _b3 = ctx.saved_tensors
+        xc, w1t, w2t, w3t, b1, b2, _b3 = ctx.saved_tensors[:7]
         need = ctx.needs_input_grad
         need_x, need_w = need[0], any(need[1:])
         dtype = w1t.numpy().dtype
