@@ -212,3 +212,20 @@ def test_ctrl_c_in_export_leaves_nothing_and_says_so(tmp_path, capsys, monkeypat
     err = capsys.readouterr().err
     assert err == f"inrslam export: interrupted; nothing was exported to {out} (an export is written as a whole)\n"
     assert len(calls) == 4 and not out.exists() and os.listdir(tmp_path) == []
+
+
+def test_ctrl_c_in_bench_prints_the_command_that_resumes_it(tmp_path):
+    """The resume line keeps the executor flags (a SLURM sweep must not go on locally on the login node) and
+    quotes paths with spaces, so it can be pasted as printed."""
+    import shlex
+
+    from inrslam.cli import _interrupted_message, build_parser
+
+    argv = ["bench", "my spec.yaml", "--out", "runs/my sweep", "--executor", "slurm", "--partition", "gpu",
+            "--time", "90", "--jobs", "3"]
+    line = _interrupted_message(build_parser().parse_args(argv))
+    command = line.split("resume the sweep with ", 1)[1]
+    assert shlex.split(command) == ["inrslam", "bench", "my spec.yaml", "--out", "runs/my sweep", "--jobs", "3",
+                                    "--executor", "slurm", "--partition", "gpu", "--time", "90"]
+    plain = _interrupted_message(build_parser().parse_args(["bench", "s.yaml", "--out", "o"]))
+    assert plain.endswith("resume the sweep with inrslam bench s.yaml --out o")

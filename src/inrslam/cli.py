@@ -19,6 +19,7 @@ import logging
 import math
 import os
 import re
+import shlex
 import sys
 import tempfile
 import time
@@ -672,9 +673,14 @@ def _interrupted_message(args) -> str:
             return (f"interrupted before the first checkpoint; start it again with: inrslam run --config "
                     f"{rd.config} --out {out} --overwrite")
         return "interrupted before the run started; nothing was written"
-    if args.command == "bench":
+    if args.command == "bench":  # the same command (executor flags included) resumes a sweep
+        argv = [str(args.spec), "--out", str(args.out)] + (["--jobs", str(args.jobs)] if args.jobs != 1 else [])
+        for flag, value in (("--executor", args.executor if args.executor != "local" else None),
+                            ("--address", args.address), ("--partition", args.partition),
+                            ("--time", args.time if args.executor == "slurm" and args.time != 60 else None)):
+            argv += [flag, str(value)] if value is not None else []
         return (f"interrupted; finished runs are kept and checkpointed ones continue: resume the sweep with "
-                f"inrslam bench {args.spec} --out {args.out}")
+                f"inrslam bench {shlex.join(argv)}")
     if args.command == "export":
         return f"interrupted; nothing was exported to {args.out} (an export is written as a whole)"
     return "interrupted"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 
 import pytest
 
@@ -159,3 +160,34 @@ def test_missing_optional_dependency_message(monkeypatch, tmp_path):
     with pytest.raises(InrslamError, match=r"pip install inrslam\[slurm\]"):
         run_sweep(spec("dense"), tmp_path / "o", executor="slurm", run_fn=FAKE, validate=False, quiet=True)
     assert not (tmp_path / "o").exists()  # failed before writing anything
+
+
+def test_slurm_refuses_a_fraction_of_a_gpu(tmp_path):
+    """SLURM gives whole GPUs: gpus_per_run=0.5 was int()-ed to 0, a job without a GPU; now refused up-front."""
+    from inrslam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"gpus_per_run=0\.5: SLURM gives whole GPUs"):
+        run_sweep(spec("dense"), tmp_path / "o", executor="slurm", run_fn=FAKE, validate=False, quiet=True,
+                  gpus_per_run=0.5)
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_second_sweep_into_the_same_folder_is_refused_while_the_first_runs(tmp_path):
+    """Two `inrslam bench` on one --out ran every unfinished run twice into the same folders; the folder is now
+    locked for the sweep's duration (and free again after it)."""
+    from inrslam.bench.sweep import _lock_folder
+    from inrslam.errors import ConfigError
+
+    out = tmp_path / "o"
+    out.mkdir()
+    held = _lock_folder(out)  # what a running sweep holds
+    try:
+        busy = rf"another inrslam bench is running into this folder \(pid {os.getpid()}\)"
+        with pytest.raises(ConfigError, match=busy):
+            run_sweep(spec("dense"), out, run_fn=FAKE, validate=False, quiet=True)
+        assert executed_runs(out) == []
+    finally:
+        held.close()
+    res = run_sweep(spec("dense"), out, run_fn=FAKE, validate=False, quiet=True)
+    assert not res.failed and len(executed_runs(out)) == len(res.runs)
+    _lock_folder(out).close()  # released at the end: taking it again works

@@ -214,3 +214,38 @@ def test_latex_escapes_every_special_character_once():
 
     assert _tex_escape("a\\b") == r"a\textbackslash{}b"  # its braces are not escaped again
     assert _tex_escape("x_1 & 50% #2 $y {z} ^ ~") == r"x\_1 \& 50\% \#2 \$y \{z\} \textasciicircum{} \textasciitilde{}"
+
+
+def test_a_mean_leaving_out_runs_is_shown_with_its_count_and_never_best(tmp_path):
+    """What the review found: a row that failed on the hard scene (or whose seed diverged to a null metric) was
+    averaged over the rest and came out best; now its cells say k/n and the rows over all their runs rank."""
+    root = tmp_path / "runs"
+    for scene, ate in (("easy", 1.0), ("hard", 10.0)):
+        write_fake_run(root / f"{scene}__dense__direct__paper__s0", "dense", "direct", scene, 0, metrics=M(ate, 25, 40),
+                       preset="paper", frames=12)
+    write_fake_run(root / "easy__hash__direct__paper__s0", "hash", "direct", "easy", 0, metrics=M(0.5, 26, 1),
+                   preset="paper", frames=12)
+    failed = write_fake_run(root / "hard__hash__direct__paper__s0", "hash", "direct", "hard", 0, preset="paper",
+                            status="failed", frames=12)  # what a sweep leaves of a failed run: its config, the error
+    (failed / "metrics.json").unlink()
+    (failed / "error.txt").write_text("RuntimeError: out of memory\n")
+    write_fake_run(root / "easy__tri__direct__paper__s0", "triplane", "direct", "easy", 0,
+                   metrics=M(0.2, 20, 5, ate_rmse_m=None), preset="paper", frames=12)  # a diverged seed: null
+    write_fake_run(root / "hard__tri__direct__paper__s0", "triplane", "direct", "hard", 0, metrics=M(3.0, 21, 5),
+                   preset="paper", frames=12)
+    rows = {r.encoding: r for r in aggregate(collect_runs(root))}
+    dense, hash_row, tri = rows["dense"], rows["hash"], rows["triplane"]
+    assert hash_row.total == 2 and hash_row.partial("ate_cm") and hash_row.partial("psnr_db")
+    assert tri.total == 2 and tri.partial("ate_cm") and not tri.partial("psnr_db")
+    assert not dense.partial("ate_cm") and dense.mean["ate_cm"] == pytest.approx(5.5)
+    assert dense.best["ate_cm"] and not hash_row.best["ate_cm"] and not tri.best["ate_cm"]  # 0.5 and 3.0 left out
+    assert tri.best["model_mb"] and not hash_row.best["model_mb"]  # hash's 1 MB is over 1 run of 2
+    md = to_markdown(list(rows.values()))
+    assert "0.50 (1/2)" in md and "3.00 (1/2)" in md and "**5.50 ± 6.36**" in md
+    assert "(k/n): mean over k of the row's n runs" in md
+    assert "(1/2)" in to_latex(list(rows.values()))
+    table = {t["encoding"]: t for t in csv.DictReader(io.StringIO(to_csv(list(rows.values()))))}
+    assert table["hash"]["runs"] == "1" and table["hash"]["runs_total"] == "2" and table["hash"]["ate_cm_best"] == "0"
+    report = build_report(root, tmp_path / "report")
+    assert "0.50 (1/2)" in (report / "leaderboard.md").read_text()
+    assert "(1/2)" not in (report / "leaderboard_easy.md").read_text().split("Sparse (hash)")[1].splitlines()[0]

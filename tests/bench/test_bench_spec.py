@@ -159,3 +159,20 @@ def test_config_typo_fails_before_anything_runs(tmp_path):
         run_sweep({**BASE, "scenes": [str(tmp_path / "missing")]}, tmp_path / "out", quiet=True)
     with pytest.raises(ConfigError, match="built-in scene"):
         run_sweep({**BASE, "scenes": ["builtin:rooom"]}, tmp_path / "out", quiet=True)
+
+
+def test_pose_and_camera_files_in_overrides_are_made_absolute_and_checked(tmp_path, monkeypatch):
+    """`slam.poses` / `eval.virtual_cameras` in a sweep's overrides resolve like `inrslam run`'s (from the current
+    directory, written absolute into each run's config) and a missing file fails before anything runs."""
+    from inrslam.bench.spec import validate_runs
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "poses.txt").write_text("0 0 0 0 0 0 0 1\n")
+    runs = expand({**BASE, "overrides": ["slam.poses=poses.txt", "eval.virtual_cameras=poses.txt"]})
+    cfg = resolve_config(runs[0])
+    assert cfg.slam.poses == str(tmp_path / "poses.txt") == cfg.eval.virtual_cameras
+    validate_runs(runs)
+    assert resolve_config(expand({**BASE, "overrides": {"slam": {"poses": "gt"}}})[0]).slam.poses == "gt"
+    missing = expand({**BASE, "overrides": ["slam.poses=nonexist_poses.txt"]})
+    with pytest.raises(ConfigError, match=r"slam\.poses: file .*nonexist_poses\.txt does not exist"):
+        validate_runs(missing)

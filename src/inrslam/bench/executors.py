@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Iterator, Protocol
 
 from inrslam.bench.worker import run_one
-from inrslam.errors import InrslamError
+from inrslam.errors import ConfigError, InrslamError
 from inrslam.registry import Registry
 
 
@@ -180,6 +180,9 @@ class SlurmExecutor:
     """submitit `AutoExecutor(folder=<out>/slurm)`: one job per run, submitted as an array."""
 
     def __init__(self, options: ExecutorOptions):
+        if float(options.gpus_per_run) != int(options.gpus_per_run):
+            raise ConfigError(f"gpus_per_run={options.gpus_per_run:g}: SLURM gives whole GPUs to a job; use an "
+                              "integer (a fraction of a GPU is for the ray executor)")
         _import_submitit()  # fail early with the install hint
         self.options = options
         self.threads = options.threads(default=None if options.cpus_per_run else 4)

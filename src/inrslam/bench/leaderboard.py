@@ -198,6 +198,12 @@ class Row:
     std: dict[str, float | None] = field(default_factory=dict)
     best: dict[str, bool] = field(default_factory=dict)
     why: dict[str, str] = field(default_factory=dict)  # column key -> why it has no value ('' when it has one)
+    total: int = 0  # the row's runs in the folder, complete or not (0: as many as `runs`)
+
+    def partial(self, key: str) -> bool:
+        """Whether the mean of column `key` leaves out some of the row's runs (failed, unfinished, or null there):
+        such a mean is shown with its count and never marked best, as the rows it would beat cover more."""
+        return self.mean.get(key) is not None and len(self.values[key]) < max(self.total, len(self.runs))
 
 
 def _mean_std(vals: list[float]) -> tuple[float | None, float | None]:
@@ -210,16 +216,21 @@ def _mean_std(vals: list[float]) -> tuple[float | None, float | None]:
 
 
 def aggregate(records: list[RunRecord], columns: tuple[Column, ...] = COLUMNS) -> list[Row]:
-    """Group complete runs by (render, encoding, preset); mean ± sample std over seeds and scenes; mark bests."""
+    """Group complete runs by (render, encoding, preset); mean ± sample std over seeds and scenes; mark bests.
+    Runs of `records` that are not complete count in their row's `total` (a mean over fewer is `Row.partial`)."""
     groups: dict[tuple, list[RunRecord]] = {}
+    totals: dict[tuple, int] = {}
     for r in records:
+        key = (r.render, r.encoding, r.preset)
+        totals[key] = totals.get(key, 0) + 1
         if r.complete:
-            groups.setdefault((r.render, r.encoding, r.preset), []).append(r)
+            groups.setdefault(key, []).append(r)
     rows = []
     for (ren, enc, preset), recs in sorted(groups.items(), key=lambda kv: (_order(kv[0][0], RENDER_LABELS),
                                                                          _order(kv[0][1], ENCODING_LABELS), kv[0][2])):
         values = {c.key: [v for v in (r.value(c) for r in recs) if v is not None] for c in columns}
-        row = Row(render=ren, encoding=enc, preset=preset, runs=sorted(r.name for r in recs), values=values)
+        row = Row(render=ren, encoding=enc, preset=preset, runs=sorted(r.name for r in recs), values=values,
+                  total=totals[(ren, enc, preset)])
         for c in columns:
             row.mean[c.key], row.std[c.key] = _mean_std(values[c.key])
             row.why[c.key] = missing_reason(recs, c) if row.mean[c.key] is None else ""
@@ -274,22 +285,18 @@ def missing_notes(rows: list[Row], columns: tuple[Column, ...] = COLUMNS) -> lis
 
 
 def mark_best(rows: list[Row], columns: tuple[Column, ...] = COLUMNS) -> None:
-    """Set `row.best[key]` for the row(s) with the best mean of each column (ties all marked)."""
+    """Set `row.best[key]` for the row(s) with the best mean of each column (ties all marked), among the means
+    over all of a row's runs (a `Row.partial` mean is never best)."""
     for c in columns:
-        means = [r.mean[c.key] for r in rows if r.mean.get(c.key) is not None]
+        means = [r.mean[c.key] for r in rows if r.mean.get(c.key) is not None and not r.partial(c.key)]
         target = (max if c.higher_better else min)(means) if means else None
         for r in rows:
             m = r.mean.get(c.key)
-            r.best[c.key] = m is not None and target is not None and math.isclose(m, target, rel_tol=1e-12,
-                                                                                     abs_tol=1e-15)
+            r.best[c.key] = (m is not None and target is not None and not r.partial(c.key)
+                             and math.isclose(m, target, rel_tol=1e-12, abs_tol=1e-15))
 
 
-def by_scene(records: list[RunRecord]) -> dict[str, list[RunRecord]]:
-    """Records grouped by scene name (sorted)."""
-    out: dict[str, list[RunRecord]] = {}
-    for r in records:
-        out.setdefault(r.scene, []).append(r)
-    return dict(sorted(out.items()))
+PARTIAL_NOTE = "(k/n): mean over k of the row's n runs (the others failed, did not finish or have no value); not ranked"
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -297,7 +304,8 @@ def by_scene(records: list[RunRecord]) -> dict[str, list[RunRecord]]:
 
 
 def format_cell(row: Row, col: Column, pm: str = " ± ") -> str:
-    """'1.37 ± 0.12' (std only with two or more runs), or '–' when missing."""
+    """'1.37 ± 0.12' (std only with two or more runs), '1.37 (2/3)' for a `Row.partial` mean, or '–' when
+    missing."""
     m = row.mean.get(col.key)
     if m is None:
         return MISSING
@@ -305,7 +313,13 @@ def format_cell(row: Row, col: Column, pm: str = " ± ") -> str:
     text = f"{m:.{col.decimals}f}"
     if s is not None:
         text += f"{pm}{s:.{col.decimals}f}"
+    if row.partial(col.key):
+        text += f" ({len(row.values[col.key])}/{max(row.total, len(row.runs))})"
     return text
+
+
+def _has_partial(rows: list[Row], columns: tuple[Column, ...]) -> bool:
+    return any(r.partial(c.key) for r in rows for c in columns)
 
 
 def _show_preset(rows: list[Row]) -> bool:
@@ -334,27 +348,29 @@ def to_markdown(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, title: s
     if not rows:
         lines.append("| " + " | ".join([MISSING] * len(head)) + " |")
     notes = missing_notes(rows, columns)
-    if notes:
+    if notes or _has_partial(rows, columns):
         lines += [""] + [f"- {MISSING}: {why} ({cells})" for why, cells in notes]
+        lines += [f"- {PARTIAL_NOTE}"] if _has_partial(rows, columns) else []
     return "\n".join(lines) + "\n"
 
 
 def to_csv(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, scene: str | None = None) -> str:
-    """CSV: render, encoding, preset, runs, then <key>_mean, <key>_std, <key>_n, <key>_best per column, and `best`
-    (the columns this row is best in, ';'-separated). Missing values are empty cells."""
+    """CSV: render, encoding, preset, runs (complete), then <key>_mean, <key>_std, <key>_n, <key>_best per column,
+    `best` (the columns this row is best in, ';'-separated) and `runs_total` (complete or not). Missing values are
+    empty cells."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     head = (["scene"] if scene is not None else []) + ["render", "encoding", "preset", "runs"]
     for c in columns:
         head += [f"{c.key}_mean", f"{c.key}_std", f"{c.key}_n", f"{c.key}_best"]
-    w.writerow(head + ["best"])
+    w.writerow(head + ["best", "runs_total"])
     for r in rows:
         line = ([scene] if scene is not None else []) + [r.render, r.encoding, r.preset, len(r.runs)]
         for c in columns:
             m, s = r.mean.get(c.key), r.std.get(c.key)
             line += ["" if m is None else repr(m), "" if s is None else repr(s), len(r.values[c.key]),
                      int(bool(r.best.get(c.key)))]
-        w.writerow(line + [";".join(c.key for c in columns if r.best.get(c.key))])
+        w.writerow(line + [";".join(c.key for c in columns if r.best.get(c.key)), max(r.total, len(r.runs))])
     return buf.getvalue()
 
 
@@ -394,7 +410,10 @@ def to_latex(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, caption: st
             cells.append(r"\textbf{" + text + "}" if r.best.get(c.key) else text)
         lines.append(" & ".join(cells) + r" \\")
         prev = r.render
-    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    lines += [r"\bottomrule", r"\end{tabular}"]
+    if _has_partial(rows, columns):
+        lines.append(r"\\[2pt]{\footnotesize " + _tex_escape(PARTIAL_NOTE) + "}")
+    lines.append(r"\end{table}")
     return "\n".join(lines) + "\n"
 
 
@@ -429,4 +448,6 @@ def to_html(rows: list[Row], columns: tuple[Column, ...] = COLUMNS) -> str:
         out.append("<ol class='notes'>" + "".join(
             f"<li>{MISSING}: {html.escape(why)} <span class='where'>({html.escape(cells)})</span></li>"
             for why, cells in notes) + "</ol>")
+    if _has_partial(rows, columns):
+        out.append(f"<p class='notes'>{html.escape(PARTIAL_NOTE)}</p>")
     return "\n".join(out)

@@ -26,7 +26,6 @@ from inrslam.bench.leaderboard import (
     COLUMNS,
     RunRecord,
     aggregate,
-    by_scene,
     collect_runs,
     encoding_label,
     number,
@@ -133,12 +132,12 @@ def build_report(runs_dir: str | os.PathLike, out: str | os.PathLike | None = No
     complete = [r for r in records if r.complete]
     scenes = sorted({r.scene for r in complete})
     seeds = sorted({r.seed for r in complete if r.seed is not None})
-    rows = aggregate(complete)
+    rows = aggregate(records)  # failed and unfinished runs count in their rows' totals
     what = f"{len(complete)} runs, {len(scenes)} scene(s), {len(seeds)} seed(s)"
     _write_tables(out, "leaderboard", rows, f"Leaderboard: mean ± std over scenes and seeds ({what})")
     scene_rows = {}
-    for scene, recs in by_scene(complete).items():
-        scene_rows[scene] = aggregate(recs)
+    for scene in scenes:
+        scene_rows[scene] = aggregate([r for r in records if r.scene == scene])
         _write_tables(out, f"leaderboard_{sanitize(scene)}", scene_rows[scene],
                       f"Leaderboard, scene {scene}: mean ± std over seeds", scene=scene)
     write_text(out / "runs.csv", runs_csv(records))

@@ -260,6 +260,7 @@ def expand(spec: SweepSpec | dict | str | os.PathLike) -> list[RunSpec]:
         ov = deep_merge(ov, scene.overrides)
         ov = deep_merge(ov, {"data": {"path": scene.path}, "field": {"encoding": enc}, "render": {"name": ren},
                              "seed": seed})
+        ov = _absolute_files(ov)
         runs.append(RunSpec(name=run_name(scene.name, enc, ren, preset, seed), scene=scene.name,
                             scene_path=scene.path, encoding=enc, render=ren, preset=preset, seed=seed, overrides=ov))
     names = [r.name for r in runs]
@@ -317,6 +318,19 @@ def check_registry_names(cfg) -> None:
         raise ConfigError(f"config key 'render.name': {RENDERERS.unknown_message(cfg.render.name)}")
 
 
+FILE_KEYS = (("slam", "poses"), ("eval", "virtual_cameras"))
+"""Override keys naming a file: made absolute when the sweep is expanded (as `inrslam run` does), checked to exist."""
+
+
+def _absolute_files(ov: dict) -> dict:
+    """`ov` with the FILE_KEYS it sets absolute (relative to the current directory, like scene folders)."""
+    for section, key in FILE_KEYS:
+        value = ov.get(section, {}).get(key) if isinstance(ov.get(section), dict) else None
+        if isinstance(value, str) and value and value != "gt":
+            ov = deep_merge(ov, {section: {key: str(Path(os.path.expanduser(value)).absolute())}})
+    return ov
+
+
 def validate_runs(runs: list[RunSpec], source: str = "sweep spec", check_paths: bool = True,
                   spec: SweepSpec | None = None) -> dict[str, Any]:
     """Resolve every run's config up-front (a typo fails before anything runs). Returns {run name: RunConfig}.
@@ -338,6 +352,12 @@ def validate_runs(runs: list[RunSpec], source: str = "sweep spec", check_paths: 
         elif check_paths and not Path(scene_path).is_dir():
                 raise ConfigError(f"{source}: scene folder {scene_path} does not exist (relative paths are taken from "
                                   "the current directory; ${DATA_ROOT}-style variables are expanded)")
+    for run in runs if check_paths else ():
+        for section, key in FILE_KEYS:
+            value = getattr(getattr(cfgs[run.name], section), key)
+            if value and value != "gt" and not Path(value).is_file():
+                raise ConfigError(f"{source}: run {run.name}: {section}.{key}: file {value} does not exist (relative "
+                                  "paths are taken from the current directory)")
     return cfgs
 
 

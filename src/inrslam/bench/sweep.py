@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -186,42 +187,72 @@ def run_sweep(spec, out, jobs: int = 1, executor: str = "local", address: str | 
                               **executor_options)
     ex = make_executor(executor, options)
     out.mkdir(parents=True, exist_ok=True)
-    _save_spec(spec, sp, out)
-    meta = {"spec": sp.source, "executor": executor, "jobs": jobs, "started": _now()}
-    _write_status(out, res, meta, "running")
-    calls = [{"run": r.to_dict(), "out_dir": str(out), "run_fn": fn_path(run_fn)} for r in todo]
-    state = "finished"
-    shown = SweepProgress(len(todo), len(runs) - len(todo), jobs, executor)
-    if not quiet:
-        print(shown.start_line(), flush=True)
-    stream = ex.run(calls) if calls else iter(())
+    lock = _lock_folder(out)  # one sweep at a time per folder: a second would run the same runs into it
     try:
-        for result in stream:
-            _record(out, result)
-            res.results[result["name"]] = result
-            _write_status(out, res, meta, "running")
-            if not quiet:
-                print(shown.finished(result), flush=True)
-            if on_result is not None and on_result(result) is False:
-                res.interrupted, state = True, "interrupted"
-                break
-    except KeyboardInterrupt:
-        res.interrupted = True
-        _write_status(out, res, meta, "interrupted")
-        raise
-    except Exception as e:
-        _write_status(out, res, {**meta, "error": f"{type(e).__name__}: {e}"}, "error")
-        raise
+        _save_spec(spec, sp, out)
+        meta = {"spec": sp.source, "executor": executor, "jobs": jobs, "started": _now()}
+        _write_status(out, res, meta, "running")
+        calls = [{"run": r.to_dict(), "out_dir": str(out), "run_fn": fn_path(run_fn)} for r in todo]
+        state = "finished"
+        shown = SweepProgress(len(todo), len(runs) - len(todo), jobs, executor)
+        if not quiet:
+            print(shown.start_line(), flush=True)
+        stream = ex.run(calls) if calls else iter(())
+        try:
+            for result in stream:
+                _record(out, result)
+                res.results[result["name"]] = result
+                _write_status(out, res, meta, "running")
+                if not quiet:
+                    print(shown.finished(result), flush=True)
+                if on_result is not None and on_result(result) is False:
+                    res.interrupted, state = True, "interrupted"
+                    break
+        except KeyboardInterrupt:
+            res.interrupted = True
+            _write_status(out, res, meta, "interrupted")
+            raise
+        except Exception as e:
+            _write_status(out, res, {**meta, "error": f"{type(e).__name__}: {e}"}, "error")
+            raise
+        finally:
+            close = getattr(stream, "close", None)
+            if close:
+                close()
+        _write_status(out, res, meta, state)
+        if report:
+            res.report = build_report(out)
+        if not quiet:
+            print(res.summary())
+        return res
     finally:
-        close = getattr(stream, "close", None)
-        if close:
-            close()
-    _write_status(out, res, meta, state)
-    if report:
-        res.report = build_report(out)
-    if not quiet:
-        print(res.summary())
-    return res
+        lock.close()
+
+
+LOCK_FILE = ".sweep.lock"
+
+
+def _lock_folder(out: Path):
+    """An exclusive lock on `out/.sweep.lock` (released when the returned file is closed, or the process ends);
+    ConfigError when another sweep holds it. Where `fcntl` is missing (Windows) no lock is taken."""
+    f = open(out / LOCK_FILE, "a+")
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        return f
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.seek(0)
+        holder = f.read().strip() or "another process"
+        f.close()
+        raise ConfigError(f"{out}: another inrslam bench is running into this folder ({holder}); wait for it to end "
+                          "(re-running then resumes) or give another --out") from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"pid {os.getpid()}\n")
+    f.flush()
+    return f
 
 
 def _record(out: Path, result: dict) -> None:
