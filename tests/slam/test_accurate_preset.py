@@ -93,6 +93,44 @@ def test_const_velocity_init_skips_gicp(tmp_path_factory):
         assert "gicp_fitness" not in r and "sdf_iters" not in r and r["iters"] >= 1
 
 
+def test_without_gicp_the_only_on_failure_stages_track_every_frame(tmp_path_factory):
+    """`--preset accurate slam.init=const_velocity` (the ablation docs/accurate.md shows) kept both neural stages
+    for GICP failures that could not happen: no frame was tracked and every pose stayed at frame 0's."""
+    out = run(tmp_path_factory, "cv_only", "accurate", ["slam.init=const_velocity", "slam.track_iters=4"])
+    recs = tracks(out)
+    assert recs and all(r["sdf_iters"] >= 1 and r["iters"] >= 1 and "gicp_fitness" not in r for r in recs)
+    est = read_tum(out / "trajectory.txt")[1]
+    assert np.linalg.norm(est[-1][:3, 3] - est[0][:3, 3]) > 0.01  # the camera moves (it stood still before)
+
+
+def test_a_frame_without_depth_never_becomes_the_gicp_keyframe():
+    """A depthless frame failed GICP (too few points) and, failed, was made the keyframe: the next frame, full
+    depth, then registered onto an empty cloud and failed too. The keyframe before it is kept as the target."""
+    import dataclasses
+
+    from inrslam.datasets import open_dataset
+    from inrslam.slam.system import SlamSystem
+
+    cfg = load_config(preset="gicp", overrides=SMALL + ["slam.gicp.target=keyframe"])
+    ds = open_dataset(cfg.data)
+
+    class HoleAt3:
+        name, root, intrinsics, bounds, gt_mesh = ds.name, ds.root, ds.intrinsics, ds.bounds, ds.gt_mesh
+
+        def __len__(self):
+            return 6
+
+        def __getitem__(self, i):
+            f = ds[i]
+            return dataclasses.replace(f, depth=np.zeros_like(f.depth)) if i == 3 else f
+
+    system = SlamSystem(cfg, HoleAt3())
+    recs = [r for i in range(6) for r in system.process(i) if r["type"] == "track"]
+    assert recs[2]["fallback"].startswith("gicp_too_few_points")  # frame 3
+    assert 3 not in system.state.gicp_kfs and recs[3]["gicp_target"] != 3  # frame 4 registers onto an older one
+    assert "fallback" not in recs[3] and recs[3]["gicp_fitness"] > 0.5
+
+
 def test_interrupted_accurate_run_resumes_to_the_uninterrupted_result(all_on, tmp_path):
     out = tmp_path / "interrupted"
 

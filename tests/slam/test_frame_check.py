@@ -69,3 +69,15 @@ def test_bad_frames_are_one_error_naming_the_frame(edit, needle):
     assert str(e.value).startswith(frame.source or "frame 0") and "\n" not in str(e.value)
     with pytest.raises(DataError, match=needle):
         SlamSystem(cfg, Edited(ds, edit)).process(0)
+
+
+def test_a_first_frame_without_depth_is_one_error_before_anything_is_fitted():
+    """A colour-only initialisation seeded the lost-tracking level with a loss without depth terms, so every later
+    frame was flagged lost (and stop_after blamed data.stride); now the run stops at once, saying what to do."""
+    cfg = load_config(preset="quick", overrides=BASE)
+    ds = open_dataset(cfg.data)
+    empty = Edited(ds, lambda f: dataclasses.replace(f, depth=np.zeros_like(f.depth)) if f.index == 0 else f)
+    system = SlamSystem(cfg, empty)
+    with pytest.raises(DataError, match=r"the first frame has no valid depth.*data\.start=K"):
+        system.process(0)
+    assert system.state.next_frame == 0 and system.state.init_ms == 0

@@ -59,6 +59,14 @@ def test_tracking_best_pose_includes_final_update_unless_faithful():
     # one Adam step moves x by lr towards the target: only the evaluation of the final pose can keep it
     assert ours.c2w[0, 3].item() == pytest.approx(1e-3, rel=1e-3)
     assert torch.equal(orig.c2w, torch.eye(4))
+    # `iters` counts the pose updates made: track_iters either way (the faithful loop logged one fewer)
+    for final in (True, False):
+        res = track_frame(StubModel(target), torch.eye(4), *rays(4, 0),
+                          dataclasses.replace(cfg, track_iters=20, eval_final_pose=final), None, max_jump=0.5)
+        assert res.iters == 20
+    nan = track_frame(StubModel(torch.tensor([[float("nan"), 0.0, 0.0]])), torch.eye(4), *rays(4, 0), cfg, None,
+                      max_jump=0.5)
+    assert nan.iters == 0  # the first loss was NaN: no update made
 
 
 def test_tracking_rejects_pose_jumps_and_nan():

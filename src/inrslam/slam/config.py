@@ -63,7 +63,8 @@ class SdfTrackConfig:
     back-projected depth points, r_i = SDF(T p_i) (metres), robust (Huber) weights, stop on a small step."""
 
     iters: int = 0  # maximum Gauss-Newton iterations per frame (0 = off)
-    only_on_init_failure: bool = False  # run only when the geometric initialiser failed its checks (wall views)
+    only_on_init_failure: bool = False  # run only when the geometric initialiser failed its checks (wall views);
+    # every frame when there is none (slam.init=const_velocity)
     points: int = 8192  # depth points per frame (drawn once per frame)
     huber: float = 0.01  # Huber threshold, metres
     band: float = 0.5  # use points with |SDF| < band x truncation (where the field was trained as a distance)
@@ -201,7 +202,8 @@ class SlamConfig:
     track_iters: int = 20  # pose iterations per frame
     track_pixels: int = 1024  # rays per tracking iteration (drawn once per frame)
     track_lr: float = 1e-3  # Adam learning rate of the pose
-    track_only_on_init_failure: bool = False  # rendered tracking only when the geometric initialiser failed
+    track_only_on_init_failure: bool = False  # rendered tracking only when the geometric initialiser failed (every
+    # frame without one: slam.init=const_velocity)
     track_edge: int = 20  # pixels ignored at the image border during tracking
     keep_best_pose: bool = True  # keep the lowest-loss evaluated pose (False: the last evaluated pose)
     eval_final_pose: bool = True  # also evaluate the pose after the final update (the original never did)

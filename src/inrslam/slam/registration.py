@@ -102,6 +102,11 @@ class PreparedCloud:
         self.size = int(self.cloud.size())
 
 
+def min_points(cfg: GicpConfig) -> int:
+    """Fewest points (after downsampling) a cloud needs to be registered or registered onto."""
+    return max(50, 3 * cfg.neighbors)
+
+
 def prepare_depth(depth: np.ndarray, intr, cfg: GicpConfig) -> PreparedCloud:
     """A frame's depth image -> its prepared camera-frame cloud."""
     return PreparedCloud(depth_points(depth, intr, cfg), cfg)
@@ -112,7 +117,7 @@ def register(target: PreparedCloud, source: PreparedCloud, init_T: np.ndarray, c
     size of the correction. A failed check still returns GICP's pose, with ok False and the reason. With
     `cfg.rigid_init` the start is projected onto SE(3) first (small_gicp's result keeps its start's scale / shear)."""
     init_T = nearest_rigid_np(init_T) if cfg.rigid_init else np.asarray(init_T, dtype=np.float64)
-    min_pts = max(50, 3 * cfg.neighbors)
+    min_pts = min_points(cfg)
     if target.size < min_pts or source.size < min_pts:
         return Registration(init_T.copy(), False, "too_few_points", 0.0, 0.0, 0)
     sg = _small_gicp()

@@ -45,6 +45,7 @@ from inrslam.slam.registration import (
     depth_noise,
     depth_points,
     filtered_depth,
+    min_points,
     moved_beyond,
     prepare_depth,
     register,
@@ -213,6 +214,10 @@ class SlamSystem:
         if frame.pose_valid and np.all(np.isfinite(frame.c2w)):
             self.state.gt[i] = frame.c2w
         n_valid_depth = int((ft.depth > 0).sum())
+        if i == 0 and n_valid_depth == 0 and self.given is None:
+            raise DataError(f"{frame.source or 'frame 0'}: the first frame has no valid depth, so the map cannot be "
+                            "initialised and every later frame would look lost; start at a frame with depth "
+                            "(data.start=K) or give poses (--poses)")
         if i == 0:
             start = self.given.c2w[0] if self.given is not None else frame.c2w if frame.pose_valid else np.eye(4)
             c2w0 = torch.as_tensor(start, dtype=torch.float32, device=self.device)
@@ -257,8 +262,10 @@ class SlamSystem:
             # no depth: colour-only tracking is ill-posed at the paper's settings; keep the prediction
             c2w, loss, fallback, iters = pred, float("nan"), "no_valid_depth", 0
         else:
-            # the neural map tracks a frame whose initialiser failed, unless the photometric refinement took it over
-            init_failed = "init_fallback" in extra and not extra.get("photo_rescued")
+            # the neural map tracks a frame whose initialiser failed, unless the photometric refinement took it over;
+            # without a geometric initialiser (slam.init=const_velocity) there is nothing to fail: it tracks every one
+            init_failed = (cfg.init is not PoseInit.GICP
+                           or ("init_fallback" in extra and not extra.get("photo_rescued")))
             if cfg.sdf_track.iters > 0 and (not cfg.sdf_track.only_on_init_failure or init_failed):
                 pred = self._sdf_refine(ft, pred, extra)
             if cfg.track_iters > 0 and (not cfg.track_only_on_init_failure or init_failed):
@@ -384,7 +391,8 @@ class SlamSystem:
         else:
             from_kf = (reg.T_target_source if g.target is GicpTarget.KEYFRAME
                        else np.linalg.inv(self.est[self.state.gicp_kfs[-1]].double().cpu().numpy()) @ c2w)
-            if not reg.ok or moved_beyond(from_kf, g.kf_dist, g.kf_angle) or reg.fitness < g.kf_fitness:
+            renew = not reg.ok or moved_beyond(from_kf, g.kf_dist, g.kf_angle) or reg.fitness < g.kf_fitness
+            if renew and cur.size >= min_points(g):  # (a frame with too little depth never becomes the target)
                 self.state.gicp_kfs.append(i)  # the target of the next frames (placed at its tracked pose)
                 self._target_cloud = (i, cur)
                 if g.target is GicpTarget.LOCAL_MAP:

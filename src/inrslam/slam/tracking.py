@@ -19,7 +19,7 @@ from inrslam.slam.poses import PoseSet
 class TrackResult:
     c2w: Tensor  # (4, 4) chosen pose
     best_loss: float  # loss of the chosen pose (nan if none finite)
-    iters: int  # iterations run
+    iters: int  # pose updates made (track_iters when the loop ran to the end, with or without the final evaluation)
     fallback: str | None  # "nan_loss" / "pose_jump" (prediction or best finite pose kept), or None
 
 
@@ -62,10 +62,10 @@ def _track(model: SceneModel, c2w_pred: Tensor, dirs_cam: Tensor, rgb: Tensor, d
     best_loss, best = math.inf, c2w_pred.detach().clone()
     n_evals = cfg.track_iters + (1 if cfg.eval_final_pose else 0)
     fallback = None
-    it = 0
-    for it in range(n_evals):
+    it = 0  # pose updates made (the TrackResult's `iters`)
+    for k in range(n_evals):
         c2w = pose.matrices()[0]
-        final_eval = it == cfg.track_iters  # only reached with eval_final_pose: forward pass, no update
+        final_eval = k == cfg.track_iters  # only reached with eval_final_pose: forward pass, no update
         with torch.set_grad_enabled(not final_eval):
             losses, _ = model.loss(c2w, dirs_cam, rgb, depth, generator)
             loss = losses["total"]
@@ -80,6 +80,7 @@ def _track(model: SceneModel, c2w_pred: Tensor, dirs_cam: Tensor, rgb: Tensor, d
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        it = k + 1
     if not math.isfinite(best_loss):
         return TrackResult(c2w_pred.detach().clone(), float("nan"), it, "nan_loss")
     if max_jump > 0 and float(torch.linalg.norm(best[:3, 3] - c2w_pred[:3, 3])) > max_jump:
