@@ -176,3 +176,13 @@ def test_pose_and_camera_files_in_overrides_are_made_absolute_and_checked(tmp_pa
     missing = expand({**BASE, "overrides": ["slam.poses=nonexist_poses.txt"]})
     with pytest.raises(ConfigError, match=r"slam\.poses: file .*nonexist_poses\.txt does not exist"):
         validate_runs(missing)
+
+
+def test_spec_override_errors_name_the_spec_and_its_overrides(tmp_path):
+    from inrslam.bench.spec import validate_runs
+
+    spec = write(tmp_path, {**BASE, "overrides": {"slam": {"track_itrs": 3}}})
+    with pytest.raises(ConfigError, match=r"unknown config key 'slam\.track_itrs' in sweep overrides"):
+        validate_runs(expand(spec), str(spec))
+    with pytest.raises(ConfigError, match=r"spec\.yaml: overrides: override 'slam\.track_iters': expected KEY=VALUE"):
+        load_spec(write(tmp_path, {**BASE, "overrides": ["slam.track_iters"]}))

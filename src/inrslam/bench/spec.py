@@ -130,7 +130,10 @@ def _as_overrides(value: Any, where: str) -> dict:
         from inrslam.config.loader import parse_overrides
         from inrslam.config.schema import RunConfig
 
-        return parse_overrides(value, RunConfig)
+        try:
+            return parse_overrides(value, RunConfig)
+        except ConfigError as e:
+            raise ConfigError(f"{where}: {e}") from None
     if isinstance(value, dict):
         return _nest(value, where)
     raise ConfigError(f"{where}: overrides must be a mapping or a list of KEY=VALUE, got {value!r}")
@@ -276,7 +279,8 @@ def resolve_config(run: RunSpec):
     variant this run does not select is unused here (`check_sweep_variants` checks it applies to some run)."""
     from inrslam.config.loader import load_config
 
-    cfg = load_config(None, preset=run.preset, overrides=run.overrides, check_variants=False)
+    cfg = load_config(None, preset=run.preset, overrides=run.overrides, check_variants=False,
+                      overrides_source="sweep overrides")
     check_registry_names(cfg)
     return cfg
 

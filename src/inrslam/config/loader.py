@@ -250,6 +250,7 @@ def load_config(
     preset: str | None = "paper",
     overrides: list[str] | dict | None = None,
     check_variants: bool = True,
+    overrides_source: str = "command-line overrides",
 ):
     """Resolve a `RunConfig`.
 
@@ -261,6 +262,7 @@ def load_config(
             variant the result does not select (`render.density.beta` with render.name=neus) is a ConfigError
             unless it keeps the value it would have anyway. False: such keys are unused (a run's own config.yaml
             on resume; sweeps, which check that each key applies to some run of the sweep).
+        overrides_source: what error messages call `overrides` (a sweep's: "sweep overrides").
     """
     from inrslam.config.aliases import apply_aliases
     from inrslam.config.schema import FAITHFUL_LAYER, RunConfig
@@ -274,7 +276,7 @@ def load_config(
         layers += [(data, source, not _is_preset(source)) for data, source in _load_chain(Path(config))]
     if overrides:
         ov = parse_overrides(overrides, RunConfig) if isinstance(overrides, list) else overrides
-        layers.append((ov, "command-line overrides", True))
+        layers.append((ov, overrides_source, True))
     faithful = [layer["faithful"] for layer, _, _ in layers if "faithful" in layer]
     if faithful and faithful[-1] is True:  # the last layer that sets it decides
         layers.insert(n_preset, (FAITHFUL_LAYER, "faithful=true", False))
