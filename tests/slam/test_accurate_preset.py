@@ -103,15 +103,17 @@ def test_without_gicp_the_only_on_failure_stages_track_every_frame(tmp_path_fact
     assert np.linalg.norm(est[-1][:3, 3] - est[0][:3, 3]) > 0.01  # the camera moves (it stood still before)
 
 
-def test_a_frame_without_depth_never_becomes_the_gicp_keyframe():
-    """A depthless frame failed GICP (too few points) and, failed, was made the keyframe: the next frame, full
-    depth, then registered onto an empty cloud and failed too. The keyframe before it is kept as the target."""
+@pytest.mark.parametrize("target", ["keyframe", "previous"])
+def test_a_frame_without_depth_never_becomes_the_gicp_target(target):
+    """A depthless frame failed GICP (too few points) and still became the keyframe / previous-frame target: the
+    next frame, full depth, then registered onto an empty cloud and failed too. The target before it is kept, and a
+    target read again after a resume is the same one."""
     import dataclasses
 
     from inrslam.datasets import open_dataset
     from inrslam.slam.system import SlamSystem
 
-    cfg = load_config(preset="gicp", overrides=SMALL + ["slam.gicp.target=keyframe"])
+    cfg = load_config(preset="gicp", overrides=SMALL + [f"slam.gicp.target={target}"])
     ds = open_dataset(cfg.data)
 
     class HoleAt3:
@@ -124,11 +126,27 @@ def test_a_frame_without_depth_never_becomes_the_gicp_keyframe():
             f = ds[i]
             return dataclasses.replace(f, depth=np.zeros_like(f.depth)) if i == 3 else f
 
-    system = SlamSystem(cfg, HoleAt3())
-    recs = [r for i in range(6) for r in system.process(i) if r["type"] == "track"]
+    def tracked(forget_target_after: int | None = None):
+        system = SlamSystem(cfg, HoleAt3())
+        recs = []
+        for i in range(6):
+            recs += [r for r in system.process(i) if r["type"] == "track"]
+            if i == forget_target_after:
+                system._target_cloud = None  # what a resume starts from: targets are read again from the dataset
+        return system, recs
+
+    system, recs = tracked()
     assert recs[2]["fallback"].startswith("gicp_too_few_points")  # frame 3
     assert 3 not in system.state.gicp_kfs and recs[3]["gicp_target"] != 3  # frame 4 registers onto an older one
     assert "fallback" not in recs[3] and recs[3]["gicp_fitness"] > 0.5
+    if target == "previous":
+        assert recs[3]["gicp_target"] == 2 and recs[4]["gicp_target"] == 4
+    _, again = tracked(forget_target_after=3)
+    def same(r):  # a record without its timing, NaN losses comparable
+        return json.dumps({k: v for k, v in r.items() if k != "track_ms"}, sort_keys=True)
+
+    assert [same(r) for r in again] == [same(r) for r in recs]
+    assert np.array_equal(system.est.numpy(), tracked(forget_target_after=3)[0].est.numpy())
 
 
 def test_interrupted_accurate_run_resumes_to_the_uninterrupted_result(all_on, tmp_path):

@@ -378,16 +378,19 @@ class SlamSystem:
             t_idx, target, base = self.state.gicp_kfs[-1], self._local_map(g), np.eye(4)
         else:
             t_idx = i - 1 if g.target is GicpTarget.PREVIOUS else self.state.gicp_kfs[-1]
+            if g.target is GicpTarget.PREVIOUS and self._target_cloud is not None and self._target_cloud[0] < t_idx:
+                t_idx = self._target_cloud[0]  # the frames since had too little depth to be a target
             if self._target_cloud is None or self._target_cloud[0] != t_idx:
-                t_frame = self._frame(t_idx)
-                self._target_cloud = (t_idx, prepare_depth(t_frame.depth, t_frame.intrinsics, g))
+                self._target_cloud = self._rebuilt_target(t_idx, g)
+                t_idx = self._target_cloud[0]
             target, base = self._target_cloud[1], self.est[t_idx].double().cpu().numpy()
         reg = register(target, cur, np.linalg.inv(base) @ pred.double().cpu().numpy(), g)
         rec.update(gicp_fitness=round(reg.fitness, 4), gicp_degeneracy=round(reg.degeneracy, 4), gicp_target=t_idx)
         self._gicp_information = reg.information  # of this frame's GICP pose (a photometric prior, slam.photo)
         c2w = base @ reg.T_target_source
         if g.target is GicpTarget.PREVIOUS:
-            self._target_cloud = (i, cur)
+            if cur.size >= min_points(g):  # (a frame with too little depth is never the target)
+                self._target_cloud = (i, cur)
         else:
             from_kf = (reg.T_target_source if g.target is GicpTarget.KEYFRAME
                        else np.linalg.inv(self.est[self.state.gicp_kfs[-1]].double().cpu().numpy()) @ c2w)
@@ -401,6 +404,16 @@ class SlamSystem:
             rec["init_fallback"] = f"gicp_{reg.reason}"
             return pred
         return torch.as_tensor(c2w, dtype=pred.dtype, device=pred.device)
+
+    def _rebuilt_target(self, t_idx: int, g: GicpConfig) -> tuple[int, PreparedCloud]:
+        """The GICP target cloud of frame `t_idx`, read again (after a resume); for the previous-frame target, the
+        latest frame up to `t_idx` with enough depth, as the uninterrupted run kept it."""
+        while True:
+            t_frame = self._frame(t_idx)
+            cloud = prepare_depth(t_frame.depth, t_frame.intrinsics, g)
+            if (g.target is not GicpTarget.PREVIOUS or t_idx == 0 or cloud.size >= min_points(g)):
+                return t_idx, cloud
+            t_idx -= 1
 
     def _pyramid(self, frame: Frame, smooth: np.ndarray | None = None) -> list[PhotoLevel]:
         """Photometric pyramid of a frame (`trajectory_graph.frame_pyramid`)."""
