@@ -107,6 +107,18 @@ def test_load_run_of_a_damaged_record_names_the_file(finished, tmp_path, name):
         inrslam.load_run(copy)
 
 
+def test_a_damaged_mesh_is_one_error_naming_it(finished, tmp_path):
+    copy = tmp_path / "run"
+    shutil.copytree(finished.root, copy)
+    if not (copy / "mesh.ply").is_file():
+        pytest.skip("the shared finished run has no mesh")
+    (copy / "mesh.ply").write_bytes((copy / "mesh.ply").read_bytes()[:1000])  # cut short
+    with pytest.raises(RunError, match=r"mesh\.ply: unreadable mesh \(") as e:
+        inrslam.load_run(copy).mesh()
+    assert "\n" not in str(e.value)
+    assert inrslam.load_run(finished.root).mesh().vertices.shape[1] == 3  # the intact one reads
+
+
 def test_load_run_of_a_record_without_the_camera_names_the_key(finished, tmp_path):
     copy = tmp_path / "run"
     shutil.copytree(finished.root, copy)

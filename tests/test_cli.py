@@ -229,3 +229,18 @@ def test_ctrl_c_in_bench_prints_the_command_that_resumes_it(tmp_path):
                                     "--executor", "slurm", "--partition", "gpu", "--time", "90"]
     plain = _interrupted_message(build_parser().parse_args(["bench", "s.yaml", "--out", "o"]))
     assert plain.endswith("resume the sweep with inrslam bench s.yaml --out o")
+
+
+def test_a_failed_write_is_one_line_naming_the_file(monkeypatch, capsys):
+    """Disk full, a file-size limit, a read-only folder: the OSError of a write is one line, not a traceback."""
+    import errno
+
+    from inrslam import cli
+
+    def too_large(args):
+        raise OSError(errno.EFBIG, "File too large", "runs/x/metrics.json")
+
+    monkeypatch.setitem(cli.COMMANDS, "scenes", too_large)
+    assert cli.main(["scenes"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("inrslam scenes: error: runs/x/metrics.json: File too large")

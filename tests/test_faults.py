@@ -440,7 +440,9 @@ def test_tiny_images_are_refused_before_slam(tmp_path):
 def test_resume_from_a_damaged_checkpoint_is_one_line(work, relative_run, tmp_path, damage, needle):
     run = tmp_path / "o"
     shutil.copytree(relative_run, run)
-    ck = RunDir(run).checkpoint
+    info = json.loads((run / "run_info.json").read_text())
+    (run / "run_info.json").write_text(json.dumps({**info, "status": "running"}))  # interrupted (a complete run
+    ck = RunDir(run).checkpoint  # has nothing to resume)
     raw = bytearray(ck.read_bytes())
     if damage == "empty":
         raw = bytearray()

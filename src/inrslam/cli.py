@@ -721,6 +721,11 @@ def main(argv: list[str] | None = None) -> int:
     except InrslamError as e:
         print(f"inrslam {args.command}: error: {e}", file=sys.stderr)
         return EXIT_ERROR
+    except OSError as e:  # the machine's side (disk full, file too large, permissions): its file and reason
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        print(f"inrslam {args.command}: error: {where}{e.strerror or e} (finished output is kept; files are written "
+              "whole or not at all)", file=sys.stderr)
+        return EXIT_ERROR
     except KeyboardInterrupt:
         print(f"inrslam {args.command}: {_interrupted_message(args)}", file=sys.stderr)
         return EXIT_INTERRUPTED

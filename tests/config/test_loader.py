@@ -192,3 +192,15 @@ def test_seed_and_hole_fraction_ranges(key, bad):
     with pytest.raises(ConfigError, match=re.escape(key) + r".*in \[0, "):
         load_config(overrides=[f"{key}={bad}"])
     load_config(overrides=[f"{key}=0"])
+
+
+@pytest.mark.parametrize("text", ["seed: !!timestamp garbage\n", "seed: !!bool maybe\n", 'seed: !!int ""\n',
+                                  "data: !!set [1]\n", "data: !!map [1]\n", "x: " + "[" * 2000 + "]" * 2000 + "\n"])
+def test_tags_a_value_cannot_hold_and_deep_nesting_are_one_line_errors(tmp_path, text):
+    (tmp_path / "c.yaml").write_text(text)
+    with pytest.raises(ConfigError, match=r"c\.yaml: invalid YAML: ") as e:
+        load_config(tmp_path / "c.yaml")
+    assert "\n" not in str(e.value)
+    if text.startswith("seed: "):  # the same value as a KEY=VALUE override: a ConfigError too, not a traceback
+        with pytest.raises(ConfigError, match="'seed'"):
+            load_config(overrides=["seed=" + text[len("seed: "):].strip()])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import struct
 
@@ -111,11 +112,19 @@ def test_a_full_disk_keeps_the_previous_checkpoint_and_says_so(tmp_path, monkeyp
         raise RuntimeError("[enforce fail at inline_container.cc:664] . unexpected pos 64 vs 0")
 
     monkeypatch.setattr(torch, "save", full)
+    import inrslam.runner.checkpoint as checkpoint
+
+    monkeypatch.setattr(checkpoint, "_free_mb", lambda folder: 0)  # the disk is full
     with pytest.raises(RunError, match="no space left on device") as e:
         save_checkpoint(path, _state())
     assert "previous checkpoint is kept" in str(e.value) and "MB" in str(e.value)
     assert path.read_bytes() == before
     assert [p.name for p in path.parent.iterdir()] == ["latest.pt"]  # no temporary file left behind
+    # the same torch error with room on the disk (a file-size limit, a quota): not called a full disk
+    monkeypatch.setattr(checkpoint, "_free_mb", lambda folder: 10**6)
+    with pytest.raises(RunError, match=r"writing the checkpoint failed .*1000000 MB free: a file-size limit") as e:
+        save_checkpoint(path, _state())
+    assert "previous checkpoint is kept" in str(e.value) and path.read_bytes() == before
 
 
 def test_resume_rejects_another_runs_checkpoint_and_removes_stale_temporaries(tmp_path):
@@ -124,9 +133,14 @@ def test_resume_rejects_another_runs_checkpoint_and_removes_stale_temporaries(tm
     run_slam(tiny_cfg(["field.encoding=hash"]), b)
     stale = RunDir(a).checkpoints / ".latest.pt.k1ll3d.tmp.pt"
     stale.write_bytes(os.urandom(1024))  # what kill -9 during a checkpoint write leaves
+    resume_slam(a)  # a complete run: nothing to resume, nothing touched
+    assert stale.exists() and json.loads(RunDir(a).run_info.read_text())["status"] == "complete"
+    info = json.loads(RunDir(a).run_info.read_text())
+    RunDir(a).run_info.write_text(json.dumps({**info, "status": "running"}))  # as if killed before it finished
     resume_slam(a)
-    assert not stale.exists()
+    assert not stale.exists() and json.loads(RunDir(a).run_info.read_text())["status"] == "complete"
     os.replace(RunDir(b).checkpoint, RunDir(a).checkpoint)
+    RunDir(a).run_info.write_text(json.dumps({**info, "status": "running"}))
     with pytest.raises(RunError, match="belongs to another run .*encoding 'hash' in the checkpoint, 'dense'"):
         resume_slam(a)
 

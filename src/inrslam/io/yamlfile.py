@@ -21,6 +21,8 @@ class _Loader(yaml.SafeLoader):
     (PyYAML would keep the last silently)."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        if not isinstance(node, yaml.MappingNode):  # (`!!map [1]`): the base class says what is wrong
+            return super().construct_mapping(node, deep=deep)
         first: dict = {}  # key -> mark of its first appearance
         for key_node, _ in node.value:
             if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == _MERGE:
@@ -45,11 +47,18 @@ _Loader.yaml_implicit_resolvers = {
 
 def parse_yaml(text: str) -> Any:
     """Python objects of a YAML text (safe tags only, no timestamps); `yaml.YAMLError` when it is not valid YAML
-    (also for a value its tag cannot hold, e.g. `!!int x`). Example: "path: 2023-02-28" -> {"path": "2023-02-28"}."""
+    (also for a value its tag cannot hold, e.g. `!!int x`, `!!bool maybe`, and for nesting too deep to read).
+    Example: "path: 2023-02-28" -> {"path": "2023-02-28"}."""
     try:
         return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
-    except ValueError as e:  # a constructor's own error (bad explicit tag value)
+    except yaml.YAMLError:
+        raise
+    except RecursionError:
+        raise yaml.YAMLError("nested too deeply") from None
+    except ValueError as e:  # a constructor's own error (bad explicit tag value, e.g. `!!int x`)
         raise yaml.YAMLError(str(e)) from None
+    except (TypeError, KeyError, IndexError, AttributeError) as e:  # the same from other constructors (`!!bool x`)
+        raise yaml.YAMLError(f"a value its explicit tag cannot hold ({type(e).__name__}: {e})") from None
 
 
 def load_yaml(path: str | os.PathLike) -> Any:

@@ -58,7 +58,8 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, 
 
 
 def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) -> Path:
-    """Continue an interrupted run from its last checkpoint, with the run's own resolved `config.yaml`."""
+    """Continue an interrupted run from its last checkpoint, with the run's own resolved `config.yaml`; a complete
+    run is left as it is (resuming is idempotent)."""
     from inrslam.datasets import open_dataset
     from inrslam.fields.kernels.threads import resolve_threads, thread_scope
 
@@ -67,6 +68,9 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
     rd = RunDir(run_dir)
     if not rd.holds_run():
         raise ConfigError(f"{run_dir}: not a run directory (no config.yaml)")
+    if rd.is_complete():  # nothing to do (resuming it would mark it running again and redo its evaluation)
+        stage(log, f"{run_dir}: the run is already complete; nothing to resume (--overwrite runs it again)")
+        return run_dir
     cfg = load_config(rd.config, preset=None, check_variants=False)  # checked when the run was made
     stage(log, f"opening the dataset {cfg.data.path}")
     dataset = open_dataset(cfg.data)

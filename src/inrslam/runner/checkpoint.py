@@ -59,7 +59,11 @@ def save_checkpoint(path: Path, state: dict) -> None:
         size_mb = sum(a.nbytes for _, a in _arrays(state)) / 2**20
         free_mb = _free_mb(path.parent)
         full = (isinstance(e, OSError) and e.errno == errno.ENOSPC) or (free_mb is not None and free_mb < size_mb)
-        if full or "unexpected pos" in str(e) or "file write failed" in str(e):
+        if not full and ("unexpected pos" in str(e) or "file write failed" in str(e)):  # torch's words for any
+            raise RunError(f"{path}: writing the checkpoint failed (~{size_mb:.0f} MB to write, "  # failed write
+                           f"{free_mb if free_mb is not None else '?'} MB free: a file-size limit or quota?); the "
+                           f"previous checkpoint is kept: continue with --resume {path.parent.parent}") from None
+        if full:
             raise RunError(f"{path}: no space left on device (a checkpoint needs ~{size_mb:.0f} MB, "
                            f"{free_mb if free_mb is not None else '?'} MB free); the previous checkpoint is kept: "
                            f"free space, then continue with --resume {path.parent.parent}") from None

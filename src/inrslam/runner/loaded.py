@@ -52,7 +52,13 @@ class LoadedRun:
         import trimesh
 
         path = self._rd.mesh if frame is None else self._rd.mesh_at(frame)
-        return trimesh.load(path, process=False) if path.is_file() else None
+        if not path.is_file():
+            return None
+        try:
+            return trimesh.load(path, process=False)
+        except Exception as e:  # trimesh raises many kinds on a damaged file
+            raise RunError(f"{path}: unreadable mesh ({type(e).__name__}: {e}); expected a PLY written by inrslam "
+                           "run") from None
 
     @cached_property
     def model(self):
