@@ -7,6 +7,7 @@ import pytest
 import yaml
 
 from inrslam.config.loader import build_config, config_to_dict, load_config, parse_overrides
+from inrslam.config.schema import RunConfig
 from inrslam.errors import ConfigError
 from inrslam.io.yamlfile import parse_yaml
 
@@ -159,6 +160,7 @@ def test_string_keys_from_the_command_line_keep_the_text_typed(tmp_path):
     assert cfg.data.path == "0001" and cfg.data.sevenscenes.sequence == "2023.10" and cfg.slam.track_iters == 10
     quoted = load_config(overrides=['data.sevenscenes.sequence="seq-01"'], check_variants=False)
     assert quoted.data.sevenscenes.sequence == "seq-01"
+    assert parse_overrides(["data.path = 0001 "], RunConfig) == {"data": {"path": "0001"}}  # spaces dropped
     # without a schema every value is a YAML scalar, as before
     assert parse_overrides(["data.path=0001"]) == {"data": {"path": 1}}
 

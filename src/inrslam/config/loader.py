@@ -95,7 +95,7 @@ def parse_overrides(items: list[str], schema: type | None = None) -> dict:
         tp, optional = _unwrap_optional(_leaf_type(schema, key.split(".")))
         text = raw.strip()
         if tp is str and not (optional and text in _NULLS) and text[:1] not in ("'", '"'):
-            value = raw
+            value = text  # (surrounding spaces dropped, as YAML does: `key = value` in a sweep spec's list)
         else:
             try:
                 value = parse_yaml(raw) if text else ""
