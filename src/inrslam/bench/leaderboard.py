@@ -200,10 +200,15 @@ class Row:
     why: dict[str, str] = field(default_factory=dict)  # column key -> why it has no value ('' when it has one)
     total: int = 0  # the row's runs in the folder, complete or not (0: as many as `runs`)
 
+    @property
+    def n_runs(self) -> int:
+        """The row's runs, complete or not."""
+        return max(self.total, len(self.runs))
+
     def partial(self, key: str) -> bool:
         """Whether the mean of column `key` leaves out some of the row's runs (failed, unfinished, or null there):
         such a mean is shown with its count and never marked best, as the rows it would beat cover more."""
-        return self.mean.get(key) is not None and len(self.values[key]) < max(self.total, len(self.runs))
+        return self.mean.get(key) is not None and len(self.values[key]) < self.n_runs
 
 
 def _mean_std(vals: list[float]) -> tuple[float | None, float | None]:
@@ -314,7 +319,7 @@ def format_cell(row: Row, col: Column, pm: str = " ± ") -> str:
     if s is not None:
         text += f"{pm}{s:.{col.decimals}f}"
     if row.partial(col.key):
-        text += f" ({len(row.values[col.key])}/{max(row.total, len(row.runs))})"
+        text += f" ({len(row.values[col.key])}/{row.n_runs})"
     return text
 
 
@@ -370,7 +375,7 @@ def to_csv(rows: list[Row], columns: tuple[Column, ...] = COLUMNS, scene: str | 
             m, s = r.mean.get(c.key), r.std.get(c.key)
             line += ["" if m is None else repr(m), "" if s is None else repr(s), len(r.values[c.key]),
                      int(bool(r.best.get(c.key)))]
-        w.writerow(line + [";".join(c.key for c in columns if r.best.get(c.key)), max(r.total, len(r.runs))])
+        w.writerow(line + [";".join(c.key for c in columns if r.best.get(c.key)), r.n_runs])
     return buf.getvalue()
 
 

@@ -15,6 +15,7 @@ from typing import Iterator, Optional, Protocol, runtime_checkable
 
 import numpy as np
 
+from inrslam.errors import DataError
 from inrslam.geometry.intrinsics import Intrinsics  # re-exported: readers build frames with it
 
 
@@ -80,8 +81,6 @@ def checked_frame(frame: Frame, intrinsics: Intrinsics) -> Frame:
     Raises:
         DataError naming the frame's source (or index) and what was expected.
     """
-    from inrslam.errors import DataError
-
     H, W = intrinsics.height, intrinsics.width
     where = frame.source or f"frame {frame.index}"
     rgb, depth = np.asarray(frame.rgb), np.asarray(frame.depth)

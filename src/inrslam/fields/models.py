@@ -344,7 +344,8 @@ def _validate(cfg: FieldConfig, bounds: np.ndarray) -> np.ndarray:
         if not float(getattr(cfg, key)) > 0:
             raise ConfigError(f"field.{key}: expected a positive length in metres, got {getattr(cfg, key)!r}")
     for key in ("grid_init", "plane_init_std"):
-        if not (math.isfinite(float(getattr(cfg, key))) and float(getattr(cfg, key)) >= 0):
+        scale = float(getattr(cfg, key))
+        if not (math.isfinite(scale) and scale >= 0):
             raise ConfigError(f"field.{key}: expected a finite number >= 0, got {getattr(cfg, key)!r}")
     if not 1 <= cfg.log2_hashmap_size <= 30:
         raise ConfigError(f"field.log2_hashmap_size: expected 1..30, got {cfg.log2_hashmap_size}")

@@ -51,8 +51,6 @@ def parse_yaml(text: str) -> Any:
     Example: "path: 2023-02-28" -> {"path": "2023-02-28"}."""
     try:
         return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
-    except yaml.YAMLError:
-        raise
     except RecursionError:
         raise yaml.YAMLError("nested too deeply") from None
     except ValueError as e:  # a constructor's own error (bad explicit tag value, e.g. `!!int x`)

@@ -411,7 +411,7 @@ class SlamSystem:
         while True:
             t_frame = self._frame(t_idx)
             cloud = prepare_depth(t_frame.depth, t_frame.intrinsics, g)
-            if (g.target is not GicpTarget.PREVIOUS or t_idx == 0 or cloud.size >= min_points(g)):
+            if g.target is not GicpTarget.PREVIOUS or t_idx == 0 or cloud.size >= min_points(g):
                 return t_idx, cloud
             t_idx -= 1
 
