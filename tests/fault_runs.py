@@ -2,11 +2,12 @@
 a `python -m inrslam.cli bench` subprocess (PYTHONPATH includes tests/; selected with INRSLAM_BENCH_RUN_FN).
 
 Both write a fake complete run (`inrslam.bench.testing.write_fake_run`) for seed 0. For other seeds
-`fail_other_seeds` raises and `hang_other_seeds` writes `<run_dir>/started` and then sleeps until interrupted.
+`fail_other_seeds` raises and `hang_other_seeds` writes its process id into `<run_dir>/started` and then sleeps until interrupted.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -28,6 +29,6 @@ def fail_other_seeds(run: dict, run_dir: Path) -> dict:
 
 def hang_other_seeds(run: dict, run_dir: Path) -> dict:
     if run["seed"] != 0:
-        (Path(run_dir) / "started").write_text("")
+        (Path(run_dir) / "started").write_text(f"{os.getpid()}\n")
         time.sleep(HANG_S)
     return _fake(run, run_dir)

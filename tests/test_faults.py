@@ -34,6 +34,7 @@ from inrslam.geometry.intrinsics import Intrinsics
 from inrslam.io.atomic import write_json
 from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import write_tum
+from inrslam.runner.checkpoint import load_checkpoint
 from inrslam.scenes import SceneConfig, load_scene
 
 SRC = Path(inrslam.__file__).resolve().parents[1]
@@ -55,6 +56,19 @@ def _default_sigint() -> None:
     even when the test run itself was started in the background with SIGINT ignored (a shell's `cmd &`), which
     a child would inherit."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _alive(pid: int) -> bool:
+    """Whether process `pid` exists (and is not a zombie awaiting its parent)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+    return state != "Z"
 
 
 def _env(extra: dict | None = None) -> dict:
@@ -164,7 +178,63 @@ def test_ctrl_c_in_run_says_how_to_resume_and_resume_completes(work, relative_ru
     assert m["acc_m"] == ref["acc_m"] and json.loads((out / "run_info.json").read_text())["status"] == "complete"
 
 
-def test_ctrl_c_in_bench_keeps_finished_runs_and_says_how_to_resume(tmp_path):
+def test_sigterm_unwinds_like_ctrl_c_and_a_second_process_is_refused_meanwhile(work):
+    """While a run works in its folder, a second `inrslam run` into it (--resume or --overwrite) is one line naming
+    the holder, and changes nothing; SIGTERM (a batch system's time limit, `kill`) then exits 143 with the resume
+    command and its checkpoint, and the folder is free again. (Long tracking keeps the first run busy; the Ctrl-C
+    test above resumes a run to the end.)"""
+    out = work / "t"
+    slow = [*RUN_ARGS, "slam.track_iters=2500"]
+    proc = subprocess.Popen([sys.executable, "-m", "inrslam.cli", "run", "--data", "data/room_rep", "--out", "t",
+                             *slow], cwd=work, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    wait_for(lambda: proc.poll() is not None or RunDir(out).has_checkpoint(), 240, 0.02)
+    assert proc.poll() is None, f"run ended before it could be interrupted: {proc.stderr.read()[-2000:]}"
+    config = (out / "config.yaml").read_bytes()
+    for argv in (["run", "--resume", "t", "--quiet"], ["run", "--data", "data/room_rep", "--out", "t", "--overwrite",
+                                                        *slow]):
+        second = cli(*argv, cwd=work)
+        assert_one_line_error(second, EXIT_ERROR, "another inrslam process is running in this run folder",
+                              f"pid {proc.pid} on ")
+        assert (out / "config.yaml").read_bytes() == config and RunDir(out).has_checkpoint()  # not cleared
+    proc.send_signal(signal.SIGTERM)  # the process alone, as `kill` or SLURM's time limit
+    stdout, stderr = proc.communicate(timeout=120)
+    done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    assert_one_line_error(done, 128 + signal.SIGTERM, "terminated by SIGTERM; the run can be resumed",
+                          "inrslam run --resume t")
+    assert RunDir(out).has_checkpoint() and not (out / "metrics.json").exists()
+    with RunDir(out).lock():  # the lock went with its process
+        assert (out / ".run.lock").is_file()
+
+
+def test_an_interrupt_mid_run_ends_the_frame_and_saves_it(work, monkeypatch):
+    """With no periodic checkpoint due, SIGTERM after frame 1 still leaves a checkpoint: the frame being processed
+    ends, is saved, and the run stops; the resumed run equals an uninterrupted one."""
+    args = [a for a in RUN_ARGS if not a.startswith("slam.checkpoint_every")]
+    args += ["slam.checkpoint_every=100", "slam.track_iters=150"]  # no periodic checkpoint; frames of ~0.5 s
+    out = work / "h"
+    proc = subprocess.Popen([sys.executable, "-m", "inrslam.cli", "run", "--data", "data/room_rep", "--out", "h",
+                             *args], cwd=work, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    log = out / "log.jsonl"
+    wait_for(lambda: proc.poll() is not None or (log.is_file() and '"frame": 1' in log.read_text()), 240, 0.01)
+    assert proc.poll() is None, f"run ended before it could be interrupted: {proc.stderr.read()[-2000:]}"
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=120)
+    done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    assert_one_line_error(done, 128 + signal.SIGTERM, "the run can be resumed from its last checkpoint")
+    saved = load_checkpoint(RunDir(out).checkpoint)["next_frame"]
+    assert 2 <= saved < FRAMES, saved  # frame 1 or a later one, whole; not the end of SLAM
+    frames = [json.loads(x)["frame"] for x in log.read_text().splitlines()]
+    assert max(frames) == saved - 1  # the log holds exactly the saved frames
+    monkeypatch.chdir(work)
+    assert main(["run", "--resume", "h", "--quiet"]) == 0
+    assert main(["run", "--data", "data/room_rep", "--out", "h_ref", *args]) == 0
+    assert (out / "trajectory.txt").read_text() == (work / "h_ref" / "trajectory.txt").read_text()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_in_bench_keeps_finished_runs_and_says_how_to_resume(tmp_path, signum):
     spec = _spec(tmp_path)
     out = tmp_path / "sweep"
     proc = subprocess.Popen([sys.executable, "-m", "inrslam.cli", "bench", str(spec), "--out", str(out)],
@@ -175,10 +245,17 @@ def test_ctrl_c_in_bench_keeps_finished_runs_and_says_how_to_resume(tmp_path):
     wait_for(lambda: proc.poll() is not None or hanging.exists(), 120, 0.02)
     assert proc.poll() is None, proc.stderr.read()[-2000:]
     time.sleep(0.2)
-    os.killpg(proc.pid, signal.SIGINT)
+    if signum == signal.SIGINT:
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: the whole foreground group
+        code, said = EXIT_INTERRUPTED, "interrupted; finished runs are kept"
+    else:
+        proc.send_signal(signum)  # the driver alone (`kill`, a closed session): it stops its workers itself
+        code, said = 128 + signum, "terminated by SIGTERM; finished runs are kept"
     stdout, stderr = proc.communicate(timeout=60)
     done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-    assert_one_line_error(done, EXIT_INTERRUPTED, "interrupted", f"inrslam bench {spec} --out {out}")
+    assert_one_line_error(done, code, said, f"inrslam bench {spec} --out {out}")
+    worker = int(hanging.read_text())
+    assert wait_for(lambda: not _alive(worker), 10, 0.05), "the sweep left its hanging worker running"
     assert RunDir(out / "room__dense__direct__quick__s0").is_complete()
     assert json.loads((out / "sweep_status.json").read_text())["state"] == "interrupted"
     res = run_sweep(spec, out, run_fn="inrslam.bench.testing:fake_run", quiet=True, report=False)

@@ -1,4 +1,5 @@
-"""Ctrl-C deferred while numba / llvmlite are on the stack (a KeyboardInterrupt there can crash the process)."""
+"""Ctrl-C (and SIGTERM / SIGHUP) deferred while numba / llvmlite are on the stack (a KeyboardInterrupt there can crash
+the process)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import time
 
 import pytest
 
-from inrslam.interrupts import _handler, _Retry, defer_sigint_in_jit, in_jit
+from inrslam.interrupts import (TERMINATING, Terminated, _handler, _Retry, defer_interrupts_in_jit, hold_interrupts,
+                                 in_jit)
 
 
 def frame_in(module: str):
@@ -42,12 +44,12 @@ def test_the_block_restores_the_default_and_leaves_an_ignored_sigint_alone():
     inherited = signal.getsignal(signal.SIGINT)  # SIG_IGN when the test process was started with nohup / `&`
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        with defer_sigint_in_jit() as installed:
-            assert installed and signal.getsignal(signal.SIGINT) is _handler
+        with defer_interrupts_in_jit() as installed:
+            assert signal.SIGINT in installed and signal.getsignal(signal.SIGINT) is _handler
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        with defer_sigint_in_jit() as installed:
-            assert not installed and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        with defer_interrupts_in_jit() as installed:
+            assert signal.SIGINT not in installed and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, inherited)
@@ -74,11 +76,11 @@ def test_the_callers_alarm_handler_and_timer_are_left_alone(default_sigint):
     fired = []
     signal.signal(signal.SIGALRM, lambda signum, frame: fired.append(signum))
     signal.setitimer(signal.ITIMER_REAL, 30.0)
-    with defer_sigint_in_jit():
+    with defer_interrupts_in_jit():
         pass
     assert 29.0 < signal.getitimer(signal.ITIMER_REAL)[0] <= 30.0  # a watchdog's timer keeps running
     with pytest.raises(KeyboardInterrupt):  # a Ctrl-C put off in the compiler borrows SIGALRM, then gives it back
-        with defer_sigint_in_jit():
+        with defer_interrupts_in_jit():
             compiling_when_ctrl_c_arrives()()
             time.sleep(0.2)
     assert 28.0 < signal.getitimer(signal.ITIMER_REAL)[0] < 30.0
@@ -89,6 +91,77 @@ def test_the_callers_alarm_handler_and_timer_are_left_alone(default_sigint):
 
 def test_a_ctrl_c_put_off_at_the_end_of_the_block_is_raised_when_it_ends(default_sigint):
     with pytest.raises(KeyboardInterrupt):
-        with defer_sigint_in_jit():
+        with defer_interrupts_in_jit():
             compiling_when_ctrl_c_arrives()()  # the block ends before the 50 ms retry
     assert not _Retry.pending and signal.getitimer(signal.ITIMER_REAL)[0] == 0
+
+
+@pytest.fixture
+def default_terminating():
+    """SIGTERM / SIGHUP at their defaults for the test (restored afterwards)."""
+    inherited = {s: signal.getsignal(s) for s in TERMINATING}
+    for s in TERMINATING:
+        signal.signal(s, signal.SIG_DFL)
+    yield
+    for s, h in inherited.items():
+        signal.signal(s, h)
+
+
+@pytest.mark.parametrize("name", ["SIGTERM", "SIGHUP"])
+def test_sigterm_and_sighup_raise_terminated_naming_the_signal(default_terminating, name):
+    signum = getattr(signal, name, None)
+    if signum is None:
+        pytest.skip(f"{name} does not exist on this platform")
+    with pytest.raises(Terminated) as caught:
+        with defer_interrupts_in_jit() as installed:
+            assert signum in installed and signal.getsignal(signum) is _handler
+            signal.raise_signal(signum)
+            time.sleep(1.0)  # the handler raises before this ends
+    assert caught.value.signum == signum and str(caught.value) == name
+    assert isinstance(caught.value, KeyboardInterrupt)  # every `except KeyboardInterrupt` unwinds it the same way
+    assert signal.getsignal(signum) is signal.SIG_DFL  # given back
+
+
+def test_an_ignored_or_callers_sigterm_is_left_alone(default_terminating):
+    mine = lambda signum, frame: None  # noqa: E731
+    signal.signal(signal.SIGTERM, mine)
+    if hasattr(signal, "SIGHUP"):
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)  # as under nohup
+    with defer_interrupts_in_jit() as installed:
+        assert signal.SIGTERM not in installed and signal.getsignal(signal.SIGTERM) is mine
+        if hasattr(signal, "SIGHUP"):
+            assert signal.SIGHUP not in installed and signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    assert signal.getsignal(signal.SIGTERM) is mine
+
+
+def test_a_sigterm_inside_the_compiler_is_raised_as_terminated_once_it_returns(default_terminating, default_sigint):
+    ns = {"__name__": "numba.core.fake", "signal": signal}
+    exec("def compile_():\n    signal.raise_signal(signal.SIGTERM)\n", ns)
+    with pytest.raises(Terminated) as caught:
+        with defer_interrupts_in_jit():
+            ns["compile_"]()  # put off: no exception inside the compiler ...
+            assert _Retry.pending and _Retry.signum == signal.SIGTERM
+            time.sleep(0.5)  # ... raised by the retry, still as SIGTERM
+    assert caught.value.signum == signal.SIGTERM and not _Retry.pending
+
+
+def test_a_hold_puts_off_the_first_signal_and_raises_a_second_at_once(default_terminating, default_sigint):
+    with defer_interrupts_in_jit():
+        with hold_interrupts() as held:
+            signal.raise_signal(signal.SIGTERM)  # noted, not raised: the unit of work goes on
+            time.sleep(0.1)
+        assert held.signum == signal.SIGTERM
+        with pytest.raises(KeyboardInterrupt):
+            with hold_interrupts() as held:
+                signal.raise_signal(signal.SIGTERM)
+                signal.raise_signal(signal.SIGINT)  # a second one: at once
+                time.sleep(1.0)
+        assert held.signum == signal.SIGTERM
+
+
+def test_a_hold_without_our_handler_changes_nothing(default_sigint):
+    with pytest.raises(KeyboardInterrupt):  # a script's or notebook's Ctrl-C stops it where it is
+        with hold_interrupts() as held:
+            signal.raise_signal(signal.SIGINT)
+            time.sleep(1.0)
+    assert held.signum is None

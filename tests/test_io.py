@@ -1,18 +1,25 @@
-"""Atomic writers (`inrslam.io.atomic`) and TUM trajectory files (`inrslam.io.trajectory`)."""
+"""Atomic writers (`inrslam.io.atomic`), folder locks (`inrslam.io.lock`) and TUM trajectory files
+(`inrslam.io.trajectory`)."""
 
 from __future__ import annotations
 
 import json
 import math
 import os
+import socket
 import stat
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from inrslam.errors import DataError
+import inrslam.io.atomic as atomic
+from inrslam.errors import DataError, RunError
 from inrslam.io.atomic import append_jsonl, atomic_path, write_json, write_text
+from inrslam.io.lock import LockHeld, acquire
+from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import quat_rotation, read_tum, write_tum
 
 
@@ -82,6 +89,71 @@ def test_json_writers_turn_non_finite_into_null(tmp_path):
     append_jsonl(log, {"frame": 1, "loss": 0.25, "v": [float("inf")]})
     lines = log.read_text().splitlines()
     assert [json.loads(x) for x in lines] == [{"frame": 0, "loss": None}, {"frame": 1, "loss": 0.25, "v": [None]}]
+
+
+def test_a_refused_log_append_is_cut_back_to_whole_lines(tmp_path):
+    """A line the file-size limit refuses half-way (as a full disk would) leaves the log as it was, whole lines only.
+    In a child process: the limit applies to every write of the process."""
+    log = tmp_path / "log.jsonl"
+    append_jsonl(log, {"frame": 0})
+    before = log.read_bytes()
+    child = f"""
+import errno, resource, signal, sys
+from inrslam.io.atomic import append_jsonl
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of the signal's default, ending the process
+resource.setrlimit(resource.RLIMIT_FSIZE, ({len(before) + 10}, resource.RLIM_INFINITY))
+try:
+    append_jsonl({str(log)!r}, {{"frame": 1, "note": "x" * 100}})
+except OSError as e:
+    sys.exit(0 if e.errno == errno.EFBIG else 3)
+sys.exit(4)
+"""
+    done = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert log.read_bytes() == before  # 10 bytes of the line had gone in before the refusal: cut back
+    append_jsonl(log, {"frame": 2})
+    assert [json.loads(x)["frame"] for x in log.read_text().splitlines()] == [0, 2]
+
+
+def test_atomic_writes_flush_the_folder_after_the_rename(tmp_path, monkeypatch):
+    synced = []
+    real = atomic.os.fsync
+
+    def fsync(fd):
+        synced.append(stat.S_ISDIR(os.fstat(fd).st_mode))
+        real(fd)
+
+    monkeypatch.setattr(atomic.os, "fsync", fsync)
+    write_text(tmp_path / "a.txt", "x")
+    assert synced == [False, True]  # the file's data, then the folder's entry
+    synced.clear()
+    with atomic.atomic_folder(tmp_path / "scene") as tmp:
+        (tmp / "f").write_text("y")
+    assert synced == [True] and (tmp_path / "scene" / "f").read_text() == "y"
+
+
+def test_a_folder_lock_names_its_holder_and_frees_when_closed(tmp_path):
+    path = tmp_path / ".run.lock"
+    held = acquire(path)
+    try:
+        with pytest.raises(LockHeld) as caught:  # another open file: as another process would
+            acquire(path)
+        assert caught.value.holder == f"pid {os.getpid()} on {socket.gethostname()}"
+    finally:
+        held.close()
+    acquire(path).close()  # the file left behind does not block anyone
+
+
+def test_a_run_folder_is_held_by_one_process_at_a_time(tmp_path):
+    rd = RunDir(tmp_path / "run")
+    with rd.lock():
+        assert (rd.root / RunDir.LOCK_FILE).is_file()
+        with pytest.raises(RunError, match=r"run: another inrslam process is running in this run folder \(pid "):
+            with rd.lock():
+                pass
+    with rd.lock():  # free again
+        pass
+    assert not rd.holds_run() and not RunDir(rd.root).remove_stale_temporaries()  # the lock is not a run's file
 
 
 def _poses(n: int = 6) -> np.ndarray:

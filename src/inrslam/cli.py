@@ -713,10 +713,10 @@ def main(argv: list[str] | None = None) -> int:
         args.overrides = list(args.overrides) + extra
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
-    from inrslam.interrupts import defer_sigint_in_jit
+    from inrslam.interrupts import Terminated, defer_interrupts_in_jit
 
     try:
-        with defer_sigint_in_jit():
+        with defer_interrupts_in_jit():
             return COMMANDS[args.command](args)
     except InrslamError as e:
         print(f"inrslam {args.command}: error: {e}", file=sys.stderr)
@@ -726,8 +726,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"inrslam {args.command}: error: {where}{e.strerror or e} (finished output is kept; files are written "
               "whole or not at all)", file=sys.stderr)
         return EXIT_ERROR
-    except KeyboardInterrupt:
-        print(f"inrslam {args.command}: {_interrupted_message(args)}", file=sys.stderr)
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM / SIGHUP (`Terminated`): the same unwinding
+        message = _interrupted_message(args)
+        if isinstance(e, Terminated):  # "interrupted; ..." -> "terminated by SIGTERM; ..."
+            message = f"terminated by {e}" + message[len("interrupted"):]
+            print(f"inrslam {args.command}: {message}", file=sys.stderr)
+            return 128 + e.signum  # as a shell reports a process the signal ended
+        print(f"inrslam {args.command}: {message}", file=sys.stderr)
         return EXIT_INTERRUPTED
 
 

@@ -1,10 +1,12 @@
-"""Ctrl-C that never lands inside the JIT compiler.
+"""Ctrl-C (and SIGTERM / SIGHUP) that never lands inside the JIT compiler.
 
 A SIGINT whose KeyboardInterrupt is raised while numba / llvmlite is compiling or loading a cached kernel (their
 Python callbacks run under ctypes) cannot unwind: the exception is swallowed there and the process can crash
-(seen: a segmentation fault instead of the clean "interrupted; resume with ..." exit). `defer_sigint_in_jit`
-installs a SIGINT handler that raises KeyboardInterrupt at once anywhere else, and inside those frames retries
-every 50 ms until the compiler has returned.
+(seen: a segmentation fault instead of the clean "interrupted; resume with ..." exit). `defer_interrupts_in_jit`
+installs a handler that raises KeyboardInterrupt at once anywhere else, and inside those frames retries every 50 ms
+until the compiler has returned. SIGTERM (`kill`, a batch system's time limit) and SIGHUP (a closed terminal) get
+the same handler where they would otherwise end the process on the spot: they raise `Terminated`, a
+KeyboardInterrupt, so a run or a sweep unwinds as on Ctrl-C (a sweep cancels its jobs, files are written whole).
 """
 
 from __future__ import annotations
@@ -18,6 +20,21 @@ from typing import Iterator
 
 RETRY_S = 0.05
 _JIT_MODULES = ("numba", "llvmlite")
+#: signals that end a process by default and are turned into `Terminated` (SIGHUP is missing on Windows)
+TERMINATING = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised where Ctrl-C would be; `signum` is the signal's number."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+
+
+def interrupt(signum: int) -> KeyboardInterrupt:
+    """The exception a signal raises: KeyboardInterrupt for SIGINT, `Terminated` for the others."""
+    return Terminated(signum) if signum in TERMINATING else KeyboardInterrupt()
 
 
 def in_jit(frame: types.FrameType | None) -> bool:
@@ -30,18 +47,20 @@ def in_jit(frame: types.FrameType | None) -> bool:
 
 
 class _Retry:
-    """The SIGALRM retry of a Ctrl-C put off inside the compiler, and what it borrowed: the caller's SIGALRM handler
-    and interval timer, given back (the timer less the time elapsed) once the Ctrl-C is raised or the block ends."""
+    """The SIGALRM retry of a signal put off inside the compiler, and what it borrowed: the caller's SIGALRM handler
+    and interval timer, given back (the timer less the time elapsed) once the interrupt is raised or the block ends.
+    `signum` is the signal put off (the first one, if several arrive)."""
 
     pending = False
+    signum = int(signal.SIGINT)
     handler: object = signal.SIG_DFL
     timer: tuple[float, float] = (0.0, 0.0)
     since = 0.0
 
     @classmethod
-    def arm(cls) -> None:
+    def arm(cls, signum: int) -> None:
         if not cls.pending:
-            cls.pending, cls.handler = True, signal.getsignal(signal.SIGALRM)
+            cls.pending, cls.signum, cls.handler = True, int(signum), signal.getsignal(signal.SIGALRM)
             cls.timer, cls.since = signal.getitimer(signal.ITIMER_REAL), time.monotonic()
             signal.signal(signal.SIGALRM, _handler)
         signal.setitimer(signal.ITIMER_REAL, RETRY_S)  # try again once the compiler has returned
@@ -58,34 +77,73 @@ class _Retry:
             signal.setitimer(signal.ITIMER_REAL, max(left - (time.monotonic() - cls.since), 1e-3), interval)
 
 
-def _handler(signum: int, frame: types.FrameType | None) -> None:
-    if in_jit(frame):
-        _Retry.arm()
-        return
-    _Retry.disarm()
-    raise KeyboardInterrupt
+class Held:
+    """What `hold_interrupts` put off: `signum` of the first signal that arrived in its block, else None."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+
+_HOLD: list[Held] = []  # the innermost active hold_interrupts block last
 
 
 @contextmanager
-def defer_sigint_in_jit() -> Iterator[bool]:
-    """Hold the handler for a block (main thread only), unless SIGINT is not Python's default handler (ignored, as
-    in a shell's background job, or the caller's own); the previous handler is back afterwards, and so are the
-    caller's SIGALRM handler and timer, which only a Ctrl-C put off inside the compiler borrows. A Ctrl-C still put
-    off when the block ends is raised then. Yields whether it was installed."""
-    if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
-        yield False
+def hold_interrupts() -> Iterator[Held]:
+    """Put off a signal that `defer_interrupts_in_jit`'s handler receives until the block ends, so that a unit of
+    work (a SLAM frame) completes and can be saved: the caller reads `Held.signum` afterwards and raises
+    `interrupt(signum)` itself. A second signal inside the block is raised at once (a user who presses Ctrl-C twice
+    does not wait). Where that handler is not installed (a script, a notebook) the block changes nothing."""
+    held = Held()
+    _HOLD.append(held)
+    try:
+        yield held
+    finally:
+        _HOLD.remove(held)
+
+
+def _handler(signum: int, frame: types.FrameType | None) -> None:
+    if signum == signal.SIGALRM:  # the retry of a signal put off: raise that one
+        signum = _Retry.signum
+    elif _HOLD and _HOLD[-1].signum is None:  # the first signal in a hold: noted, raised by its caller
+        _HOLD[-1].signum = int(signum)
         return
-    signal.signal(signal.SIGINT, _handler)
+    if in_jit(frame):
+        _Retry.arm(signum)
+        return
+    _Retry.disarm()
+    raise interrupt(signum)
+
+
+def _ours(signum: int) -> bool:
+    """Whether `signum` still has the default behaviour we replace (an ignored or caller-set handler is kept)."""
+    current = signal.getsignal(signum)
+    return current is signal.default_int_handler if signum == signal.SIGINT else current is signal.SIG_DFL
+
+
+@contextmanager
+def defer_interrupts_in_jit() -> Iterator[tuple[int, ...]]:
+    """Hold the handler for a block (main thread only) on SIGINT, SIGTERM and SIGHUP, each only where it has its
+    default behaviour (an ignored one, as SIGINT in a shell's background job or SIGHUP under `nohup`, and a caller's
+    own handler are left alone); the previous handlers are back afterwards, and so are the caller's SIGALRM handler
+    and timer, which only a signal put off inside the compiler borrows. A signal still put off when the block ends
+    is raised then. Yields the signals the handler was installed for."""
+    if threading.current_thread() is not threading.main_thread():
+        yield ()
+        return
+    installed = tuple(s for s in (int(signal.SIGINT), *TERMINATING) if _ours(s))
+    previous = {s: signal.getsignal(s) for s in installed}
+    for s in installed:
+        signal.signal(s, _handler)
     failed = False
     try:
-        yield True
+        yield installed
     except BaseException:
         failed = True
         raise
     finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        pending = _Retry.pending
+        for s, h in previous.items():
+            signal.signal(s, h)
+        pending, signum = _Retry.pending, _Retry.signum
         _Retry.disarm()
         if pending and not failed:
-            raise KeyboardInterrupt  # the Ctrl-C put off in the compiler's last moments is not lost
+            raise interrupt(signum)  # the signal put off in the compiler's last moments is not lost

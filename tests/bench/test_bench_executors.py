@@ -4,13 +4,21 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import os
+import re
+import socket
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
+from polling import wait_for
 
+import inrslam
 from inrslam.bench.executors import EXECUTORS
 from inrslam.bench.sweep import run_sweep
-from inrslam.bench.testing import executed_runs
+from inrslam.bench.testing import executed_runs, fake_run
 from inrslam.bench.worker import run_one
 from inrslam.io.rundir import RunDir
 
@@ -182,7 +190,8 @@ def test_a_second_sweep_into_the_same_folder_is_refused_while_the_first_runs(tmp
     out.mkdir()
     held = _lock_folder(out)  # what a running sweep holds
     try:
-        busy = rf"another inrslam bench is running into this folder \(pid {os.getpid()}\)"
+        holder = re.escape(f"(pid {os.getpid()} on {socket.gethostname()})")
+        busy = rf"another inrslam bench is running into this folder {holder}"
         with pytest.raises(ConfigError, match=busy):
             run_sweep(spec("dense"), out, run_fn=FAKE, validate=False, quiet=True)
         assert executed_runs(out) == []
@@ -191,3 +200,198 @@ def test_a_second_sweep_into_the_same_folder_is_refused_while_the_first_runs(tmp
     res = run_sweep(spec("dense"), out, run_fn=FAKE, validate=False, quiet=True)
     assert not res.failed and len(executed_runs(out)) == len(res.runs)
     _lock_folder(out).close()  # released at the end: taking it again works
+
+
+# -- SLURM: re-attaching to the jobs a killed driver left in flight -------------------------------------------------
+
+HERE = Path(__file__).resolve().parent
+PYTHONPATH = os.pathsep.join([str(Path(inrslam.__file__).resolve().parents[1]), str(HERE.parent), str(HERE)])
+GATED = "test_bench_executors:gated_run"  # importable by the job processes through PYTHONPATH
+GATE_S = 120.0
+
+
+def gated_run(run: dict, run_dir: Path) -> dict:
+    """Run function of a job that must outlive its driver: waits for `<out>/release` (the test writes it), then
+    `fake_run`; fails after GATE_S seconds so a failed test leaves no job behind."""
+    if not wait_for((Path(run_dir).parent / "release").exists, GATE_S, 0.05):
+        raise RuntimeError(f"{run['name']}: never released")
+    return fake_run(run, run_dir)
+
+
+class _ReleaseAfter(logging.Handler):
+    """Writes `path` once `n` re-attach records were logged, so the gated jobs end only after that decision."""
+
+    def __init__(self, path: Path, n: int):
+        super().__init__()
+        self.path, self.n = path, n
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.getMessage().startswith("re-attaching"):
+            self.n -= 1
+            if self.n == 0:
+                self.path.touch()
+
+
+def _gated_sweep(out: Path, **kw):
+    return run_sweep(spec("dense"), out, executor="slurm", cluster="local", cpus_per_run=1, run_fn=GATED,
+                     validate=False, quiet=True, report=False, **kw)
+
+
+def test_slurm_reattaches_to_jobs_a_killed_driver_left_running(tmp_path, monkeypatch, caplog):
+    """A SIGKILLed driver leaves its (submitit local) jobs running; running the sweep again waits on them and
+    yields their results instead of submitting the runs a second time."""
+    pytest.importorskip("submitit")
+    from submitit import LocalJob
+
+    from inrslam.bench.executors import INFLIGHT_FILE, local_state, read_inflight
+
+    monkeypatch.setenv("PYTHONPATH", PYTHONPATH)
+    out = tmp_path / "sweep"
+    folder, book = out / "slurm", out / "slurm" / INFLIGHT_FILE
+    code = f"from test_bench_executors import _gated_sweep; from pathlib import Path; _gated_sweep(Path({str(out)!r}))"
+    err = tmp_path / "driver.err"  # a file, not a pipe: the jobs inherit it and outlive the driver
+    with open(err, "w") as f:
+        driver = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=f)
+    try:
+        wait_for(lambda: driver.poll() is not None or len(read_inflight(book)) == 2, 120, 0.05)
+        assert driver.poll() is None, err.read_text()[-3000:]
+    finally:
+        driver.kill()  # SIGKILL: no finally, no cancel
+        driver.wait()
+    jobs = {r["name"]: r["job_id"] for r in read_inflight(book)}
+    assert {r["run_dir"] for r in read_inflight(book)} == {str(out / n) for n in jobs}
+    assert all(local_state(folder, j) == "RUNNING" for j in jobs.values())  # the jobs outlive their driver
+    submitted = sorted(p.name for p in folder.glob("*_submitted.pkl"))
+    assert submitted == sorted(f"{j}_submitted.pkl" for j in jobs.values())
+
+    caplog.set_level(logging.INFO, logger="inrslam.bench.executors")
+    release = _ReleaseAfter(out / "release", len(jobs))
+    logging.getLogger("inrslam.bench.executors").addHandler(release)
+    try:
+        res = _gated_sweep(out)
+    finally:
+        logging.getLogger("inrslam.bench.executors").removeHandler(release)
+        (out / "release").touch()  # whatever happened, let the jobs end
+    assert res.count("complete") == 2 and not res.failed
+    assert sorted(p.name for p in folder.glob("*_submitted.pkl")) == submitted  # no job submitted again
+    assert sorted(executed_runs(out)) == sorted(jobs)  # each run executed once, by its first job
+    for name, job_id in jobs.items():
+        assert res.results[name] == LocalJob(folder, job_id).result()  # the original job's result
+        assert any(f"local job {job_id} " in m and name in m for m in caplog.messages if m.startswith("re-attach"))
+    assert read_inflight(book) == []  # finished jobs are forgotten
+
+
+def _call(out: str, name: str) -> dict:
+    return {"run": {"name": name}, "out_dir": out, "run_fn": FAKE}
+
+
+def _rec(job_id: str, out: str, name: str, cluster: str = "slurm") -> dict:
+    from inrslam.bench.executors import job_record
+
+    return job_record(job_id, cluster, _call(out, name))
+
+
+def test_plan_reattach_waits_only_on_live_jobs_of_the_same_run_dir(tmp_path):
+    from inrslam.bench.executors import plan_reattach
+
+    out, other = str(tmp_path / "o"), str(tmp_path / "other")
+    calls = [_call(out, n) for n in ("live", "pending", "done", "cancelled", "unknown", "unsure", "new", "elsewhere")]
+    records = [_rec("1", out, "live"), _rec("2", out, "pending"), _rec("3", out, "done"), _rec("4", out, "cancelled"),
+               _rec("5", out, "unknown"), _rec("6", out, "unsure"), _rec("7", other, "elsewhere"),
+               _rec("8", out, "not-asked-live"), _rec("9", out, "not-asked-unsure"), _rec("10", out, "not-asked-done")]
+    states = {"1": "RUNNING", "2": "PENDING", "3": "COMPLETED", "4": "CANCELLED by 1000", "5": "UNKNOWN", "6": None,
+              "7": "RUNNING", "8": "REQUEUED", "9": None, "10": "FAILED"}
+    plan = plan_reattach(calls, records, states)
+    assert [(r["job_id"], c["run"]["name"]) for r, c in plan.attach] == [("1", "live"), ("2", "pending")]
+    assert [c["run"]["name"] for c in plan.submit] == ["done", "cancelled", "unknown", "unsure", "new", "elsewhere"]
+    assert [r["job_id"] for r in plan.unsure] == ["6"]
+    assert sorted(r["job_id"] for r in plan.keep) == ["7", "8", "9"]  # live or unknowable, run not asked for
+    # a later record of the same run wins; a run dir given relative matches its absolute record
+    again = plan_reattach([_call(os.path.relpath(out), "live")], [_rec("1", out, "live"), _rec("11", out, "live")],
+                          {"1": "COMPLETED", "11": "RUNNING"})
+    assert [r["job_id"] for r, _ in again.attach] == ["11"] and not again.submit
+
+
+SACCT = """#!/bin/sh
+echo "$@" > "${0%/*}/args"
+printf 'JobID|State\\n123_0|RUNNING\\n123_0.batch|RUNNING\\n123_1|CANCELLED by 0\\n123_[2-3]|PENDING\\n'
+"""
+
+
+def test_slurm_plan_reads_states_from_sacct_and_falls_back_to_submitting(tmp_path, monkeypatch, caplog):
+    """With a stand-in `sacct` on PATH the recorded array elements still running or pending are re-attached; with
+    no sacct every run is submitted again, with a warning naming the job."""
+    pytest.importorskip("submitit")
+    from inrslam.bench.executors import INFLIGHT_FILE, ExecutorOptions, SlurmExecutor, sacct_states
+    from inrslam.io.atomic import write_json
+
+    out, folder, bin_dir = str(tmp_path / "o"), tmp_path / "o" / "slurm", tmp_path / "bin"
+    names = ["a", "b", "c", "d"]
+    write_json(folder / INFLIGHT_FILE, {"jobs": [_rec(j, out, n) for j, n in zip(["123_0", "123_1", "123_2", "99_0"],
+                                                                                 names)]})
+    bin_dir.mkdir()
+    (bin_dir / "sacct").write_text(SACCT)
+    (bin_dir / "sacct").chmod(0o755)
+    monkeypatch.setenv("PATH", str(bin_dir))
+    assert sacct_states(["123_0", "123_1", "123_3", "99_0"]) == (
+        {"123_0": "RUNNING", "123_1": "CANCELLED by 0", "123_3": "PENDING", "99_0": "UNKNOWN"}, None)
+    assert (bin_dir / "args").read_text().split() == ["-o", "JobID,State", "--parsable2", "-j", "123", "-j", "99"]
+    ex = SlurmExecutor(ExecutorOptions(folder=out, cluster="slurm"))
+    caplog.set_level(logging.INFO, logger="inrslam.bench.executors")
+    plan = ex._plan("slurm", folder, [_call(out, n) for n in names])
+    assert [(r["job_id"], c["run"]["name"]) for r, c in plan.attach] == [("123_0", "a"), ("123_2", "c")]
+    assert [c["run"]["name"] for c in plan.submit] == ["b", "d"]
+    assert any("slurm job 123_2 (PENDING) of run c" in m for m in caplog.messages)
+
+    (bin_dir / "sacct").unlink()
+    caplog.clear()
+    plan = ex._plan("slurm", folder, [_call(out, n) for n in names])
+    assert not plan.attach and [c["run"]["name"] for c in plan.submit] == names
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 4
+    assert warned[0].startswith("cannot tell whether slurm job 123_0 of run a is still running (sacct failed")
+    assert warned[0].endswith("; submitting the run again")
+
+
+# -- Ray: CPUs per run from the cluster's nodes ----------------------------------------------------------------------
+
+NODES = [{"Alive": True, "Resources": {"CPU": 8.0, "GPU": 1.0}}, {"Alive": True, "Resources": {"CPU": 4.0}},
+         {"Alive": False, "Resources": {"CPU": 64.0}}, {"Alive": True, "Resources": {}}]
+
+
+@pytest.mark.parametrize("jobs, expected", [(1, 8), (2, 6), (3, 4), (4, 3), (12, 1), (100, 1)])
+def test_ray_cpus_per_run_from_alive_nodes(jobs, expected):
+    """Total alive CPUs (12) // jobs, never more than the largest node (8); a dead node does not count."""
+    from inrslam.bench.executors import ray_cpus_per_run
+
+    assert ray_cpus_per_run(NODES, jobs) == expected
+
+
+def test_ray_cpus_per_run_refuses_more_than_any_node_has():
+    from inrslam.bench.executors import ray_cpus_per_run
+    from inrslam.errors import ConfigError
+
+    assert ray_cpus_per_run(NODES, jobs=1, cpus_per_run=8) == 8
+    with pytest.raises(ConfigError, match=r"^cpus_per_run=9: no Ray node has that many CPUs \(the largest has 8\)"):
+        ray_cpus_per_run(NODES, jobs=1, cpus_per_run=9)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_ray_executor_fits_runs_on_a_node_smaller_than_the_driver(tmp_path):
+    """On a 1-CPU Ray instance the runs were asked os.cpu_count() // jobs CPUs of the driver and never scheduled;
+    now they get the node's CPU, and a cpus_per_run no node has is refused instead of hanging."""
+    ray = pytest.importorskip("ray")
+    from inrslam.errors import ConfigError
+
+    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        res = run_sweep(spec("dense"), tmp_path / "ray", jobs=1, executor="ray", run_fn=FAKE, validate=False,
+                        quiet=True, report=False)
+        assert res.count("complete") == 2 and len(executed_runs(tmp_path / "ray")) == 2
+        with pytest.raises(ConfigError, match=r"cpus_per_run=2: .*the largest has 1\)"):
+            run_sweep(spec("hash"), tmp_path / "ray2", executor="ray", cpus_per_run=2, run_fn=FAKE, validate=False,
+                      quiet=True, report=False)
+        assert executed_runs(tmp_path / "ray2") == [] and ray.is_initialized()
+    finally:
+        ray.shutdown()

@@ -121,6 +121,46 @@ def test_row_partitioned_sparse_backward_matches_reference(monkeypatch, name, pa
     assert torch.equal(t1.grad.to_dense(), t.grad.to_dense())
 
 
+@pytest.mark.parametrize("n_rows,expected", [(1, np.int32), ((1 << 31) - 1, np.int32), (1 << 31, np.int64),
+                                             ((1 << 31) + 1, np.int64), (1 << 40, np.int64)])
+def test_row_index_dtype_widens_at_2_31_rows(n_rows, expected):
+    """Row numbers and slots of the sparse backward (both below the table's rows) stay int32 while they fit, and are
+    int64 for a table of 2^31 rows or more (a pure function of the size: nothing is allocated)."""
+    from inrslam.fields.kernels.function import row_index_dtype
+
+    dtype = row_index_dtype(n_rows)
+    assert dtype == np.dtype(expected)
+    assert np.iinfo(dtype).max >= n_rows - 1  # the largest row number and the largest slot fit
+
+
+@pytest.mark.parametrize("name,parts", [("dense", 1), ("dense", 2), ("hash", 2), ("planes+lines", 1)])
+def test_int64_row_indices_give_the_int32_gradient(monkeypatch, name, parts):
+    """The row-slot sparse backwards (trilinear, whole levels and row parts; generic) with int64 row numbers and slots,
+    as tables of 2^31 rows or more get them (forced here on a small table): bit for bit the int32 gradient, the
+    reference's, and the slot map restored to −1."""
+    from inrslam.fields.kernels import function
+
+    monkeypatch.setattr(function, "ACCUMULATOR_MAX_BYTES", 0)  # force the slot kernel, not the accumulator
+    monkeypatch.setattr(function, "PART_LOG2", 2)
+    monkeypatch.setattr(function, "_row_parts", lambda layout: parts)
+    layout, table, x = _case(name, n=300, feat=2)
+    cot = torch.randn(x.shape[0], layout.n_entries, table.shape[1])
+    grads = {}
+    for index in (np.int32, np.int64):
+        if index is np.int64:
+            monkeypatch.setattr(function, "INT32_MAX_ROWS", 0)  # every table counts as large
+        t = table.clone().requires_grad_()
+        multilinear(x, t, layout, "numba", sparse=True).backward(cot)
+        ws = layout.workspace
+        assert ws.slots.dtype == ws.sparse_out[0].dtype == np.dtype(index)
+        assert np.all(ws.slots == -1)
+        grads[index] = t.grad
+    assert torch.equal(grads[np.int64]._indices(), grads[np.int32]._indices())
+    assert torch.equal(grads[np.int64]._values(), grads[np.int32]._values())
+    _, _, gt_ref = _grads("torch", layout, table, x, cot)
+    torch.testing.assert_close(grads[np.int64].to_dense(), gt_ref, rtol=1e-5, atol=1e-5)
+
+
 @pytest.mark.parametrize("backend", ["torch", "numba"])
 @pytest.mark.parametrize("name", ["dense", "hash", "planes_faithful", "planes+lines"])
 def test_gradcheck_float64(backend, name):

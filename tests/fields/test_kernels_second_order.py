@@ -143,3 +143,26 @@ def test_second_order_row_slot_path_matches_reference(monkeypatch, name):
     ref = _normals_loss_grads("torch", layout, table, x, w, cot, None)
     for a, b, what in zip(fused, ref, ("normals", "d/dx", "d/dtable")):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9 * b.abs().max().item(), msg=what)
+
+
+@pytest.mark.parametrize("name", ["dense", "planes+lines"])
+def test_second_order_row_slot_path_with_int64_row_indices(monkeypatch, name):
+    """The row-slot scatters of the second-order table gradient (trilinear and generic) with int64 row numbers and
+    slots, as tables of 2^31 rows or more get them (forced here): bit for bit the int32 results and the reference's."""
+    monkeypatch.setattr(function, "ACCUMULATOR_MAX_BYTES", 0)
+    layout = TableLayout.build(ENTRIES[name])
+    table = torch.randn(layout.total_rows, 2, dtype=torch.float64)
+    x = torch.rand(200, 3, dtype=torch.float64) * 1.2 - 0.1
+    w = torch.randn(layout.n_entries * 2, dtype=torch.float64)
+    cot = torch.randn(200, 3, dtype=torch.float64)
+    fused = []
+    for index in (np.int32, np.int64):
+        if index is np.int64:
+            monkeypatch.setattr(function, "INT32_MAX_ROWS", 0)  # every table counts as large
+        fused.append(_normals_loss_grads("numba", layout, table, x, w, cot, True, scoped=True))
+        assert layout.workspace.slots.dtype == layout.workspace.sparse_out[0].dtype == np.dtype(index)
+        assert np.all(layout.workspace.slots == -1)
+    ref = _normals_loss_grads("torch", layout, table, x, w, cot, None)
+    for a, b, c, what in zip(fused[1], fused[0], ref, ("normals", "d/dx", "d/dtable")):
+        assert torch.equal(a, b), what
+        torch.testing.assert_close(a, c, rtol=1e-9, atol=1e-9 * c.abs().max().item(), msg=what)

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from inrslam.fields import FieldConfig, build_field, make_optimizer
-from inrslam.fields.kernels import TableLayout, multilinear
+from inrslam.fields.kernels import TableLayout, function, multilinear
 from inrslam.fields.kernels.function import unique_rows_of
 from inrslam.fields.optim import LazyAdam
 
@@ -84,7 +84,8 @@ def test_lazy_adam_equals_adam_when_every_row_is_touched():
     adam = torch.optim.Adam([p2], lr=0.01)
     for _ in range(5):
         g = torch.randn(50, 3)
-        p1.grad = torch.sparse_coo_tensor(torch.arange(50)[None], g, (50, 3), check_invariants=False)  # uncoalesced, unique rows
+        # uncoalesced, unique rows
+        p1.grad = torch.sparse_coo_tensor(torch.arange(50)[None], g, (50, 3), check_invariants=False)
         p2.grad = g.clone()
         lazy.step()
         adam.step()
@@ -105,6 +106,27 @@ def test_duplicate_sparse_rows_are_summed():
     o2.step()
     torch.testing.assert_close(p1, p2)
     assert p1[3].abs().sum() > 0 and p1[0].abs().sum() == 0
+
+
+def test_duplicate_rows_are_summed_on_int64_row_slots(monkeypatch):
+    """The de-duplication on a table layout's own row slots (``unique_rows_sum``) with int64 slots, as tables of 2^31
+    rows or more get them (forced here): the step of the coalesced gradient, and the slots restored to −1."""
+    monkeypatch.setattr(function, "INT32_MAX_ROWS", 0)
+    model = Toy()
+    p1 = model.table
+    p2 = nn.Parameter(p1.detach().clone())
+    p2._inr_lazy = True
+    o1 = LazyAdam([dict(params=[p1], lazy=True)], lr=0.1, layouts={id(p1): model.layout})
+    o2 = LazyAdam([dict(params=[p2], lazy=True)], lr=0.1)
+    idx = torch.tensor([[3, 3000, 3, 7, 3]])
+    vals = torch.randn(5, 2)
+    p1.grad = torch.sparse_coo_tensor(idx, vals, p1.shape, check_invariants=False)
+    p2.grad = torch.sparse_coo_tensor(idx, vals, p2.shape, check_invariants=False).coalesce()
+    o1.step()
+    o2.step()
+    torch.testing.assert_close(p1, p2)
+    slots = model.layout.workspace.slots
+    assert slots.dtype == np.int64 and np.all(slots == -1)
 
 
 def test_state_dict_roundtrip_and_zero_lr():

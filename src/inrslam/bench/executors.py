@@ -7,19 +7,26 @@ executor runs the same module-level function, so results do not depend on the ex
 
 from __future__ import annotations
 
+import json
 import multiprocessing as mp
 import os
+import signal
+import subprocess
 import time
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Protocol
+from typing import Any, Iterator, Mapping, Protocol
 
 from inrslam.bench.worker import run_one
 from inrslam.errors import ConfigError, InrslamError
+from inrslam.io.atomic import write_json
 from inrslam.registry import Registry
+from inrslam.status import logger
+
+log = logger(__name__)
 
 
 @dataclass
@@ -31,7 +38,8 @@ class ExecutorOptions:
     address: str | None = None  # ray: cluster address (None = start a local instance unless one is running)
     partition: str | None = None  # slurm: partition
     time_min: int = 60  # slurm: time limit per run, minutes
-    cpus_per_run: int | None = None  # CPU cores (= torch threads) per run; None = cores // jobs (slurm: 4)
+    cpus_per_run: int | None = None  # CPU cores (= torch threads) per run; None = cores // jobs (slurm: 4;
+    # ray: the cluster's CPUs // jobs, at most one node's)
     gpus_per_run: float = 0  # ray/slurm: GPUs per run
     mem_gb: float | None = None  # slurm: memory per run
     cluster: str | None = None  # slurm: submitit cluster; None = auto (slurm), "local" or "debug" for testing
@@ -131,14 +139,35 @@ def _import_ray():
     return ray
 
 
+def ray_cpus_per_run(nodes: list[dict], jobs: int, cpus_per_run: int | None = None) -> int:
+    """CPU cores (= torch threads) per Ray task, from the cluster's nodes (`ray.nodes()`), not the driver's cores.
+
+    Args:
+        nodes: `ray.nodes()` dicts; the alive ones' `Resources["CPU"]` count.
+        jobs: runs meant to share the cluster at once.
+        cpus_per_run: asked count; None = total CPUs // jobs, at most the largest node's CPUs (at least 1).
+    Raises ConfigError when `cpus_per_run` exceeds every node's CPUs (Ray would never schedule the task).
+    """
+    cpus = [int(n.get("Resources", {}).get("CPU", 0)) for n in nodes if n.get("Alive")]
+    largest = max(cpus, default=0)
+    if cpus_per_run:
+        if int(cpus_per_run) > largest:
+            raise ConfigError(f"cpus_per_run={cpus_per_run}: no Ray node has that many CPUs (the largest has "
+                              f"{largest}); give at most {largest}")
+        return int(cpus_per_run)
+    return max(1, min(largest, sum(cpus) // max(1, int(jobs))))
+
+
 @EXECUTORS.register("ray", help="one Ray task per run (ray.init(address) or a local instance)")
 class RayExecutor:
-    """One `@ray.remote(num_cpus, num_gpus)` task per run; uses an initialised Ray, else `ray.init(address)`."""
+    """One `@ray.remote(num_cpus, num_gpus)` task per run; uses an initialised Ray, else `ray.init(address)`.
+
+    CPUs per run come from the cluster's nodes once Ray is up (`ray_cpus_per_run`).
+    """
 
     def __init__(self, options: ExecutorOptions):
         _import_ray()  # fail early with the install hint
         self.options = options
-        self.threads = options.threads()
 
     def run(self, calls: list[dict]) -> Iterator[dict]:
         ray = _import_ray()
@@ -146,11 +175,13 @@ class RayExecutor:
         if not ray.is_initialized():
             ray.init(address=self.options.address, include_dashboard=False, log_to_driver=False)
             started = True
-        # max_calls=1: a fresh worker process per run, so per-run peak memory is measured alone
-        task = ray.remote(num_cpus=self.threads, num_gpus=self.options.gpus_per_run, max_retries=0,
-                          max_calls=1)(run_one)
-        refs = {task.remote(threads=self.threads, **call): call for call in calls}
+        refs: dict = {}
         try:
+            threads = ray_cpus_per_run(ray.nodes(), self.options.jobs, self.options.cpus_per_run)
+            # max_calls=1: a fresh worker process per run, so per-run peak memory is measured alone
+            task = ray.remote(num_cpus=threads, num_gpus=self.options.gpus_per_run, max_retries=0,
+                              max_calls=1)(run_one)
+            refs = {task.remote(threads=threads, **call): call for call in calls}
             while refs:
                 done, _ = ray.wait(list(refs), num_returns=1)
                 for ref in done:
@@ -175,9 +206,169 @@ def _import_submitit():
     return submitit
 
 
+INFLIGHT_FILE = "inflight.json"  # in <folder>/slurm: the jobs submitted and not yet seen finished
+RECORDED_CLUSTERS = ("slurm", "local")  # "debug" runs its jobs inside the driver: nothing outlives it
+LIVE_STATES = frozenset({"PENDING", "RUNNING", "REQUEUED", "COMPLETING", "CONFIGURING", "RESIZING", "SUSPENDED",
+                         "READY", "PREEMPTED"})  # submitit's unfinished states, without UNKNOWN
+
+
+def run_key(out_dir: str, name: str) -> str:
+    """The run's absolute directory `out_dir/name`: what ties a recorded job to a call."""
+    return os.path.abspath(os.path.join(out_dir, name))
+
+
+def job_record(job_id: str, cluster: str, call: dict) -> dict:
+    """The `inflight.json` entry of a submitted job: its id and cluster, the run's name, out_dir and run_dir."""
+    out, name = os.path.abspath(call["out_dir"]), call["run"]["name"]
+    return {"job_id": str(job_id), "cluster": cluster, "name": name, "out_dir": out, "run_dir": run_key(out, name)}
+
+
+def is_live(state: str) -> bool:
+    """Whether a scheduler state ('RUNNING', 'CANCELLED by 0', ...) means the job may still write its run."""
+    return (state.split() or ["UNKNOWN"])[0].upper() in LIVE_STATES
+
+
+@dataclass
+class ReattachPlan:
+    """What `plan_reattach` decided for the calls of one `SlurmExecutor.run`."""
+
+    attach: list[tuple[dict, dict]] = field(default_factory=list)  # (record, call): the job is live, wait on it
+    submit: list[dict] = field(default_factory=list)  # calls to submit as new jobs
+    unsure: list[dict] = field(default_factory=list)  # records of runs submitted again, job state unknowable
+    keep: list[dict] = field(default_factory=list)  # live or unknowable jobs of runs not in the calls
+
+
+def plan_reattach(calls: list[dict], records: list[dict], states: Mapping[str, str | None]) -> ReattachPlan:
+    """Wait on a call's recorded job when it is still live, else submit the call again.
+
+    Args:
+        calls: `run_one` keyword dicts (`run`, `out_dir`, ...).
+        records: `inflight.json` entries (`job_record`), oldest first; a later one for the same run wins.
+        states: job id -> scheduler state, None when it could not be determined. Finished and unknown
+            ('UNKNOWN', missing) jobs are forgotten; undetermined ones are submitted again and listed in `unsure`.
+    """
+    plan, by_run = ReattachPlan(), dict[str, dict]()
+    for rec in records:
+        state = states.get(rec["job_id"], "UNKNOWN")
+        if state is None or is_live(state):
+            by_run[rec["run_dir"]] = rec
+    for call in calls:
+        live = by_run.pop(run_key(call["out_dir"], call["run"]["name"]), None)
+        if live is not None and states.get(live["job_id"]) is not None:
+            plan.attach.append((live, call))
+            continue
+        plan.submit.append(call)
+        if live is not None:
+            plan.unsure.append(live)
+    plan.keep = list(by_run.values())
+    return plan
+
+
+def read_inflight(path: Path) -> list[dict]:
+    """The job records in `path` (none when it is missing; a damaged file is reported and ignored)."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        jobs = data["jobs"]
+        return [r for r in jobs if {"job_id", "cluster", "name", "run_dir"} <= set(r)]
+    except FileNotFoundError:
+        return []
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        log.warning("%s is unreadable (%s): no job is re-attached", path, e)
+        return []
+
+
+def sacct_states(job_ids: list[str]) -> tuple[dict[str, str | None], str | None]:
+    """SLURM state of each job id by one `sacct` call, parsed by submitit ('UNKNOWN' for a job sacct does not
+    list); every state None, with the reason, when sacct cannot be run (missing, accounting off, timeout)."""
+    from submitit.slurm.slurm import SlurmInfoWatcher
+
+    cmd = ["sacct", "-o", "JobID,State", "--parsable2"]
+    for main in sorted({j.split("_")[0] for j in job_ids}):
+        cmd += ["-j", main]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=120).stdout
+    except (OSError, subprocess.SubprocessError) as e:
+        return dict.fromkeys(job_ids), f"sacct failed: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
+    info = SlurmInfoWatcher().read_info(out)
+    return {j: info.get(j, {}).get("State") or "UNKNOWN" for j in job_ids}, None
+
+
+def local_state(folder: Path, job_id: str) -> str:
+    """State of a submitit local job (its id is its controller's pid), from any process: 'FINISHED' (result
+    written), 'RUNNING' (`/proc/<id>/cmdline` is the controller for `folder`) or 'UNKNOWN' (gone)."""
+    from submitit.core.utils import JobPaths
+
+    if JobPaths(folder, job_id, 0).result_pickle.exists():
+        return "FINISHED"
+    try:
+        args = Path(f"/proc/{int(job_id)}/cmdline").read_bytes().split(b"\0")  # empty for a zombie
+        at = args.index(b"submitit.local._local")
+        return "RUNNING" if os.path.samefile(os.fsdecode(args[at + 1]), folder) else "UNKNOWN"
+    except (OSError, ValueError, IndexError):
+        return "UNKNOWN"
+
+
+def local_states(folder: Path, job_ids: list[str]) -> tuple[dict[str, str | None], str | None]:
+    """`local_state` of each job; every state None where there is no /proc to look processes up."""
+    if not Path("/proc/self/cmdline").is_file():
+        return dict.fromkeys(job_ids), "no /proc to look up the local job processes"
+    return {j: local_state(folder, j) for j in job_ids}, None
+
+
+class OrphanLocalJob:
+    """A submitit local job started by an earlier driver (not our child): polled through /proc and its result."""
+
+    def __init__(self, folder: Path, job_id: str):
+        import submitit
+
+        self.folder, self.job_id = Path(folder), job_id
+        self._job: Any = submitit.LocalJob(folder, job_id)
+
+    def done(self) -> bool:
+        return local_state(self.folder, self.job_id) != "RUNNING"
+
+    def result(self) -> Any:
+        return self._job.result()
+
+    def cancel(self, check: bool = False) -> None:
+        if local_state(self.folder, self.job_id) == "RUNNING":
+            os.kill(int(self.job_id), signal.SIGINT)  # what submitit's LocalJob.cancel sends its controller
+
+
+def _attach(submitit, cluster: str, folder: Path, job_id: str):
+    """A job object (`done`, `result`, `cancel`) for a job an earlier driver submitted."""
+    return submitit.SlurmJob(folder, job_id) if cluster == "slurm" else OrphanLocalJob(folder, job_id)
+
+
+class InflightBook:
+    """`<folder>/slurm/inflight.json`: the submitted jobs of this sweep folder not yet seen finished, rewritten
+    atomically on every change, so a driver killed at any point leaves the old or the new list."""
+
+    def __init__(self, path: Path, cluster: str, keep: list[dict] | None = None):
+        self.path, self.cluster = path, cluster
+        self.keep = list(keep or [])  # records of other runs' live jobs, carried over
+        self.jobs: dict[str, dict] = {}
+
+    def add(self, job_id: str, call: dict) -> None:
+        self.jobs[str(job_id)] = job_record(job_id, self.cluster, call)
+
+    def remove(self, job_id: str) -> None:
+        if self.jobs.pop(str(job_id), None) is not None:
+            self.save()
+
+    def save(self) -> None:
+        if self.cluster in RECORDED_CLUSTERS:
+            write_json(self.path, {"jobs": self.keep + list(self.jobs.values())})
+
+
 @EXECUTORS.register("slurm", help="SLURM job array through submitit (cluster='local'/'debug' for testing)")
 class SlurmExecutor:
-    """submitit `AutoExecutor(folder=<out>/slurm)`: one job per run, submitted as an array."""
+    """submitit `AutoExecutor(folder=<out>/slurm)`: one job per run, submitted as an array.
+
+    Every submitted job is recorded in `<out>/slurm/inflight.json`. A later `run` on a run whose recorded job is
+    still pending or running waits on that job instead of submitting the run again (a killed driver leaves its
+    array running; two jobs must not write one run directory).
+    """
 
     def __init__(self, options: ExecutorOptions):
         if float(options.gpus_per_run) != int(options.gpus_per_run):
@@ -187,8 +378,7 @@ class SlurmExecutor:
         self.options = options
         self.threads = options.threads(default=None if options.cpus_per_run else 4)
 
-    def run(self, calls: list[dict]) -> Iterator[dict]:
-        submitit = _import_submitit()
+    def _submitit_executor(self, submitit):
         o = self.options
         ex = submitit.AutoExecutor(folder=Path(o.folder) / "slurm", cluster=o.cluster)
         params = {"timeout_min": int(o.time_min), "cpus_per_task": self.threads, "name": "inrslam-bench"}
@@ -199,10 +389,48 @@ class SlurmExecutor:
         if o.partition:
             params["slurm_partition"] = o.partition
         ex.update_parameters(**params)
-        with ex.batch():
-            jobs = [(ex.submit(run_one, threads=self.threads, **call), call) for call in calls]
-        poll = o.poll_s if o.poll_s is not None else (10.0 if ex.cluster == "slurm" else 0.2)
-        pending = list(jobs)
+        return ex
+
+    def _plan(self, cluster: str, folder: Path, calls: list[dict]) -> ReattachPlan:
+        """Read `inflight.json`, ask the scheduler about its jobs, decide which calls re-attach."""
+        records = [r for r in read_inflight(folder / INFLIGHT_FILE) if r["cluster"] == cluster]
+        if cluster not in RECORDED_CLUSTERS or not records:
+            return ReattachPlan(submit=list(calls))
+        ids = [r["job_id"] for r in records]
+        states, why = sacct_states(ids) if cluster == "slurm" else local_states(folder, ids)
+        plan = plan_reattach(calls, records, states)
+        for rec in plan.unsure:
+            log.warning("cannot tell whether %s job %s of run %s is still running (%s); submitting the run again",
+                        cluster, rec["job_id"], rec["name"], why)
+        for rec, _ in plan.attach:  # a warning: shown by `inrslam bench` (an earlier driver was killed)
+            log.warning("re-attaching to %s job %s (%s) of run %s, still in flight from an earlier sweep: waiting on "
+                     "it instead of submitting the run again", cluster, rec["job_id"], states[rec["job_id"]],
+                     rec["name"])
+        return plan
+
+    def run(self, calls: list[dict]) -> Iterator[dict]:
+        submitit = _import_submitit()
+        ex = self._submitit_executor(submitit)
+        folder = Path(ex.folder)
+        plan = self._plan(ex.cluster, folder, calls)
+        book = InflightBook(folder / INFLIGHT_FILE, ex.cluster, plan.keep)
+        pending = []
+        for rec, call in plan.attach:
+            job = _attach(submitit, ex.cluster, folder, rec["job_id"])
+            pending.append((job, call))
+            book.add(job.job_id, call)
+        if plan.submit:
+            with ex.batch():
+                new = [(ex.submit(run_one, threads=self.threads, **call), call) for call in plan.submit]
+            for job, call in new:
+                book.add(job.job_id, call)
+            pending += new
+        book.save()
+        poll = self.options.poll_s if self.options.poll_s is not None else (10.0 if ex.cluster == "slurm" else 0.2)
+        yield from self._wait(pending, book, poll, folder)
+
+    def _wait(self, pending: list, book: InflightBook, poll: float, folder: Path) -> Iterator[dict]:
+        """Yield each job's result as it finishes (forgetting its record); cancel the rest when closed early."""
         try:
             while pending:
                 for job, call in list(pending):
@@ -213,7 +441,8 @@ class SlurmExecutor:
                         res = job.result()
                     except Exception as e:  # noqa: BLE001 - job failed, timed out or was cancelled
                         res = failed_result(call, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
-                                                  f" (logs in {Path(o.folder) / 'slurm'})")
+                                                  f" (logs in {folder})")
+                    book.remove(job.job_id)
                     yield res
                 if pending:
                     time.sleep(poll)
@@ -222,4 +451,7 @@ class SlurmExecutor:
                 try:
                     job.cancel(check=False)
                 except Exception:  # noqa: BLE001 - best effort
-                    pass
+                    continue
+                book.jobs.pop(str(job.job_id), None)
+            if pending:
+                book.save()

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -27,6 +26,7 @@ from inrslam.bench.sweep_progress import SweepProgress
 from inrslam.bench.worker import fn_path
 from inrslam.errors import ConfigError
 from inrslam.io.atomic import write_json, write_text
+from inrslam.io.lock import LockHeld, acquire
 from inrslam.io.rundir import RunDir
 from inrslam.io.yamlfile import load_yaml
 
@@ -233,26 +233,13 @@ LOCK_FILE = ".sweep.lock"
 
 
 def _lock_folder(out: Path):
-    """An exclusive lock on `out/.sweep.lock` (released when the returned file is closed, or the process ends);
-    ConfigError when another sweep holds it. Where `fcntl` is missing (Windows) no lock is taken."""
-    f = open(out / LOCK_FILE, "a+")
+    """An exclusive lock on `out/.sweep.lock` (`inrslam.io.lock`; released when the returned file is closed, or the
+    process ends); ConfigError when another sweep holds it."""
     try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX
-        return f
-    try:
-        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        f.seek(0)
-        holder = f.read().strip() or "another process"
-        f.close()
-        raise ConfigError(f"{out}: another inrslam bench is running into this folder ({holder}); wait for it to end "
-                          "(re-running then resumes) or give another --out") from None
-    f.seek(0)
-    f.truncate()
-    f.write(f"pid {os.getpid()}\n")
-    f.flush()
-    return f
+        return acquire(out / LOCK_FILE)
+    except LockHeld as e:
+        raise ConfigError(f"{out}: another inrslam bench is running into this folder ({e.holder}); wait for it to "
+                          "end (re-running then resumes) or give another --out") from None
 
 
 def _record(out: Path, result: dict) -> None:

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from inrslam.fields.kernels import sparse_rows
-from inrslam.fields.kernels.function import row_slots, unique_rows_of
+from inrslam.fields.kernels.function import row_index_dtype, row_slots, unique_rows_of
 
 
 def is_lazy(p: torch.Tensor) -> bool:
@@ -51,7 +51,7 @@ class LazyAdam(torch.optim.Optimizer):
             return row_slots(layout)
         ws = self._slots.get(id(p))
         if ws is None or ws.shape[0] != p.shape[0]:
-            ws = self._slots[id(p)] = np.full(p.shape[0], -1, dtype=np.int32)
+            ws = self._slots[id(p)] = np.full(p.shape[0], -1, dtype=row_index_dtype(p.shape[0]))
         return ws
 
     def _touched(self, p: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,6 +1,7 @@
 """Atomic file writes: write to a temporary file in the same folder, fsync, then rename over the target.
 
-A crash mid-write leaves either the old file or the new one, never a half-written file.
+A crash mid-write leaves either the old file or the new one, never a half-written file; the folder is fsynced after
+the rename, so that a power loss right after a write does not bring the old file back.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             os.fsync(f.fileno())
         os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, path)
+        fsync_folder(path.parent)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
@@ -52,9 +54,25 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())
         os.replace(tmp, path)  # onto a missing or empty folder
+        fsync_folder(path.parent)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def fsync_folder(folder: str | os.PathLike) -> None:
+    """Flush a folder's entries (a rename, a new file) to disk. Best effort: where a folder cannot be opened for
+    that (Windows, some network file systems) the rename is still atomic, only not yet durable."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def temporary_files(folder: str | os.PathLike) -> list[Path]:
@@ -96,8 +114,23 @@ def _finite(obj: Any) -> Any:
 
 
 def append_jsonl(path: str | os.PathLike, record: dict) -> None:
-    """Append one JSON line and flush it to disk (a crash loses at most the line being written)."""
-    with open(path, "a", encoding="utf-8") as f:
-        f.write(json.dumps(_finite(record)) + "\n")
-        f.flush()
-        os.fsync(f.fileno())
+    """Append one JSON line and flush it to disk. A write that fails (disk full, file-size limit) is cut back, so
+    the file keeps whole lines only; a process killed mid-write can leave a partial last line (a resume cuts the log
+    back to its checkpoint)."""
+    line = (json.dumps(_finite(record)) + "\n").encode("utf-8")
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)  # unbuffered: nothing is written at close
+    try:
+        size = os.lseek(fd, 0, os.SEEK_END)
+        try:
+            view = memoryview(line)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+        except BaseException:  # the line is not there, as far as a reader can tell
+            try:
+                os.ftruncate(fd, size)
+            except OSError:
+                pass
+            raise
+    finally:
+        os.close(fd)

@@ -9,10 +9,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
+from inrslam.errors import RunError
 from inrslam.io.atomic import temporary_files, write_json
+from inrslam.io.lock import LockHeld, acquire
 
 
 def read_json(path: str | os.PathLike) -> Any:
@@ -29,7 +32,10 @@ class RunDir:
     Files: config.yaml, run_info.json, log.jsonl, trajectory.txt, trajectory_gt.txt, trajectory_relative.txt,
     keyframes.json, trajectory.png, mesh.ply, mesh.png, metrics.json, checkpoints/latest.pt; sweep runs add
     bench.json and error.txt. Folders: meshes/ (intermediate meshes), renders/ (held-out frames), tensorboard/.
+    `.run.lock` names the process running in the folder (`lock`).
     """
+
+    LOCK_FILE = ".run.lock"
 
     FILES = {
         "config": "config.yaml",
@@ -124,6 +130,22 @@ class RunDir:
             (self.root / name).unlink(missing_ok=True)
         for name in self.DIRS.values():
             shutil.rmtree(self.root / name, ignore_errors=True)
+
+    @contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the folder's lock for a block: one process at a time runs, resumes or overwrites this run (two would
+        write the same files, and each would delete the other's half-written ones). RunError naming the holder when
+        another process has it; the kernel frees it when its holder ends, however it ends."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        try:
+            held = acquire(self.root / self.LOCK_FILE)
+        except LockHeld as e:
+            raise RunError(f"{self.root}: another inrslam process is running in this run folder ({e.holder}); wait "
+                           "for it to end, or stop it and continue with --resume") from None
+        try:
+            yield
+        finally:
+            held.close()
 
     # -- JSON files --------------------------------------------------------------------------------------------------
     def read_json(self, key: str) -> Any:

@@ -11,6 +11,7 @@ from typing import Iterator
 
 from inrslam.config.loader import dump_config, load_config
 from inrslam.errors import ConfigError, RunError
+from inrslam.interrupts import hold_interrupts, interrupt
 from inrslam.io.atomic import write_text
 from inrslam.io.rundir import RunDir
 from inrslam.malloc_env import tune_malloc
@@ -49,12 +50,14 @@ def run_slam(cfg, out_dir: str | os.PathLike, progress: Progress | None = None, 
     with thread_scope(threads), load_guard():
         stage(log, f"building the map: {cfg.field.encoding} x {cfg.render.name}, {len(dataset)} frames")
         system = system_class(cfg)(cfg, dataset)
-        if overwrite:  # only now: a run that cannot start (bad data, bad config) leaves the old one as it was
-            rd.clear()
-        out.mkdir(parents=True, exist_ok=True)
-        # the resolved config, with the thread count used: `--config` reproduces the run (docs/reliability.md)
-        write_text(rd.config, dump_config(dataclasses.replace(cfg, threads=threads)))
-        return _drive(system, RunWriter(system, rd, threads), resume=False, progress=progress)
+        with rd.lock():  # one process at a time in a run folder (created here)
+            if rd.holds_run() and not overwrite:  # another process made it since the check above
+                raise ConfigError(f"{out} already holds a run: continue it with --resume {out}, or pass --overwrite")
+            if overwrite:  # only now: a run that cannot start (bad data, bad config) leaves the old one as it was
+                rd.clear()
+            # the resolved config, with the thread count used: `--config` reproduces the run (docs/reliability.md)
+            write_text(rd.config, dump_config(dataclasses.replace(cfg, threads=threads)))
+            return _drive(system, RunWriter(system, rd, threads), resume=False, progress=progress)
 
 
 def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) -> Path:
@@ -68,30 +71,37 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
     rd = RunDir(run_dir)
     if not rd.holds_run():
         raise ConfigError(f"{run_dir}: not a run directory (no config.yaml)")
-    if rd.is_complete():  # nothing to do (resuming it would mark it running again and redo its evaluation)
-        stage(log, f"{run_dir}: the run is already complete; nothing to resume (--overwrite runs it again)")
-        return run_dir
-    cfg = load_config(rd.config, preset=None, check_variants=False)  # checked when the run was made
-    stage(log, f"opening the dataset {cfg.data.path}")
-    dataset = open_dataset(cfg.data)
-    threads = _recorded_threads(run_dir) if not cfg.threads else None
-    threads = threads or resolve_threads(cfg.threads)
-    with thread_scope(threads), load_guard():
-        stage(log, f"building the map and loading the checkpoint {rd.checkpoint}")
-        system = system_class(cfg)(cfg, dataset)
-        return _drive(system, RunWriter(system, rd, threads), resume=True, progress=progress)
+    with rd.lock():  # before anything is read: the process holding it may still be writing
+        if rd.is_complete():  # nothing to do (resuming it would mark it running again and redo its evaluation)
+            stage(log, f"{run_dir}: the run is already complete; nothing to resume (--overwrite runs it again)")
+            return run_dir
+        cfg = load_config(rd.config, preset=None, check_variants=False)  # checked when the run was made
+        stage(log, f"opening the dataset {cfg.data.path}")
+        dataset = open_dataset(cfg.data)
+        threads = _recorded_threads(run_dir) if not cfg.threads else None
+        threads = threads or resolve_threads(cfg.threads)
+        with thread_scope(threads), load_guard():
+            stage(log, f"building the map and loading the checkpoint {rd.checkpoint}")
+            system = system_class(cfg)(cfg, dataset)
+            return _drive(system, RunWriter(system, rd, threads), resume=True, progress=progress)
 
 
 def _drive(system: SlamSystem, writer: RunWriter, resume: bool, progress: Progress | None) -> Path:
     """Feed the loop every remaining frame, writing as it goes; then the final outputs and the evaluation."""
     writer.start(resume)
     for i in range(system.state.next_frame, system.n_frames):
-        if i == 0:
+        if i == 0:  # the map's initialisation: an interrupt stops it at once (nothing to save yet)
             with _initialisation_status(system):
                 writer.log(system.process(i))
-        else:
-            writer.log(system.process(i))
-        writer.after_frame(i)
+            writer.after_frame(i)
+        else:  # Ctrl-C / SIGTERM (from `inrslam run`) end the frame, which is saved, then stop
+            with hold_interrupts() as held:
+                writer.log(system.process(i))
+                saved = writer.after_frame(i)
+            if held.signum is not None:
+                if not saved:
+                    writer.checkpoint()  # every finished frame is kept: a resume goes on from the next one
+                raise interrupt(held.signum)
         if progress:
             progress(i, system.n_frames, system.progress_info(i))
     metrics = writer.finish()

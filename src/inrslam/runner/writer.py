@@ -119,14 +119,17 @@ class RunWriter:
                     if isinstance(v, (int, float)) and k != "frame" and math.isfinite(v):
                         self.tb.add_scalar(f"{record.get('type', 'log')}/{k}", v, step)
 
-    def after_frame(self, i: int) -> None:
-        """Intermediate mesh (slam.mesh_every) and checkpoint (slam.checkpoint_every) after frame i."""
+    def after_frame(self, i: int) -> bool:
+        """Intermediate mesh (slam.mesh_every) and checkpoint (slam.checkpoint_every) after frame i; whether it
+        saved a checkpoint."""
         s = self.cfg.slam
         n = self.system.n_frames
         if s.mesh_every and (i + 1) % s.mesh_every == 0:
             self.write_mesh(self.system.mesh(), self.rd.mesh_at(i))
         if s.checkpoint_every and (i + 1) % s.checkpoint_every == 0 and i + 1 < n:
             self.checkpoint()
+            return True
+        return False
 
     def checkpoint(self) -> None:
         """Save the loop's state with this process's bookkeeping (atomic; verified when loaded)."""

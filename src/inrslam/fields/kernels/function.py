@@ -25,11 +25,26 @@ DENSE_GRAD_MAX_ROWS = 1 << 16
 ACCUMULATOR_MAX_BYTES = 64 << 20
 
 
+#: Tables of fewer rows than this keep their row numbers and row slots in int32 (half the memory traffic of int64),
+#: larger ones in int64 (``row_index_dtype``).
+INT32_MAX_ROWS = 1 << 31
+
+
+def row_index_dtype(n_rows: int) -> np.dtype:
+    """The integer dtype of the (M,) row → slot map and of the row numbers of the sparse backward's scratch for a
+    table of ``n_rows`` rows: int32 below ``INT32_MAX_ROWS`` (2^31) rows, else int64 (the kernels are compiled for
+    each). Both kinds of value are below n_rows: a row number is, and a slot counts the distinct rows one work item
+    touched (at most min(N·2^D, rows of its entry)); −1 marks a free slot."""
+    return np.dtype(np.int32) if n_rows < INT32_MAX_ROWS else np.dtype(np.int64)
+
+
 def row_slots(layout: TableLayout) -> np.ndarray:
-    """The (M,) int32 row → slot array (all −1 between uses) of the row-compaction kernels, created on first use."""
+    """The (M,) row → slot array (``row_index_dtype``; all −1 between uses) of the row-compaction kernels, created on
+    first use."""
     ws = layout.workspace
-    if ws.slots is None or ws.slots.shape[0] != layout.total_rows:
-        ws.slots = np.full(layout.total_rows, -1, dtype=np.int32)
+    dtype = row_index_dtype(layout.total_rows)
+    if ws.slots is None or ws.slots.shape[0] != layout.total_rows or ws.slots.dtype != dtype:
+        ws.slots = np.full(layout.total_rows, -1, dtype=dtype)
     return ws.slots
 
 
@@ -58,10 +73,10 @@ def _row_parts(layout: TableLayout) -> int:
 
 
 def _sparse_out(layout: TableLayout, n_points: int, n_feat: int, dtype, parts: int = 1) -> tuple[np.ndarray, ...]:
-    """(cap_off (P·E,), rows (C,) int32, values (C,F)) scratch of the sparse table backward, kept in the workspace
-    and reused while it is large enough; item i = p·E + e holds at most min(N·2^D_e, rows of part p of entry e) rows
-    (blocks of 2^PART_LOG2 rows dealt round-robin to P parts). Never zeroed (kernels write on first touch), so a
-    backward pays neither a large allocation nor its page faults."""
+    """(cap_off (P·E,), rows (C,) of ``row_index_dtype``, values (C,F)) scratch of the sparse table backward, kept
+    in the workspace and reused while it is large enough; item i = p·E + e holds at most min(N·2^D_e, rows of part p
+    of entry e) rows (blocks of 2^PART_LOG2 rows dealt round-robin to P parts). Never zeroed (kernels write on first
+    touch), so a backward pays neither a large allocation nor its page faults."""
     blk = 1 << PART_LOG2
     part_rows = layout.rows if parts == 1 else -(-layout.rows // blk) // parts * blk + blk
     caps = np.minimum(n_points * (1 << layout.ndim), np.minimum(part_rows, layout.rows))
@@ -69,11 +84,14 @@ def _sparse_out(layout: TableLayout, n_points: int, n_feat: int, dtype, parts: i
     cap_off = np.zeros_like(caps)
     cap_off[1:] = np.cumsum(caps)[:-1]
     need = int(caps.sum())
+    index = row_index_dtype(layout.total_rows)
     out = layout.workspace.sparse_out
-    if out is None or out[0].shape[0] < need or out[1].shape[1] != n_feat or out[1].dtype != np.dtype(dtype):
+    if out is not None and (out[0].dtype != index or out[1].dtype != np.dtype(dtype)):
+        out = None  # other dtypes: start again
+    if out is None or out[0].shape[0] < need or out[1].shape[1] != n_feat:
         # grow to the largest capacity needed so far (capped by the table size)
-        cap = max(need, out[0].shape[0] if out is not None and out[1].dtype == np.dtype(dtype) else 0)
-        out = (np.empty(cap, np.int32), np.empty((cap, n_feat), dtype=dtype))  # rows < 2^31 (as the slots)
+        cap = max(need, out[0].shape[0] if out is not None else 0)
+        out = (np.empty(cap, index), np.empty((cap, n_feat), dtype=dtype))
         layout.workspace.sparse_out = out
     return cap_off, out[0], out[1]
 

@@ -240,8 +240,9 @@ def interp_backward_table_sparse(xn, g, ndim, axes, res, scale, offset, stride, 
                                  slot, cap_off, out_rows, out_vals, counts):
     """Touched rows (non-zero interpolation weight) and their summed gradients, per entry: rows
     out_rows[cap_off[e] : cap_off[e] + counts[e]] (unique, in first-touch order), values out_vals[same] (written on
-    first touch, so they need not be pre-zeroed). ``slot`` (M,) int32 must be all −1 on
-    entry and is restored to −1 on exit; cost is O(N·2^D) per entry, independent of the table size."""
+    first touch, so they need not be pre-zeroed). ``slot`` (M,) and ``out_rows`` are int32 or int64 (one dtype for
+    both, ``function.row_index_dtype``); ``slot`` must be all −1 on entry and is restored to −1 on exit; cost is
+    O(N·2^D) per entry, independent of the table size."""
     N = xn.shape[0]
     E = ndim.shape[0]
     for ie in prange(E):

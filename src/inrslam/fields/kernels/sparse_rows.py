@@ -16,7 +16,7 @@ from inrslam.fields.kernels.prefetch import prefetch_row_w
 @njit(cache=True)
 def unique_rows_sum(rows, vals, slot, out_rows, out_vals):
     """Sum duplicate rows: returns k, with out_rows[:k] unique and out_vals[:k] (pre-zeroed) their sums.
-    ``slot`` (M,) int32 all −1 on entry and exit. O(nnz), no sort."""
+    ``slot`` (M,) int32 or int64 (``function.row_index_dtype``) all −1 on entry and exit. O(nnz), no sort."""
     cnt = 0
     F = vals.shape[1]
     for j in range(rows.shape[0]):

@@ -233,7 +233,8 @@ def tri_backward_table_sparse(xn, g, res, scale, offset, lo, hi, stride, hashed,
     round-robin, so every part spreads over the whole entry) and writes its touched rows and summed gradients
     to out_rows / out_vals[cap_off[i] : cap_off[i] + counts[i]] (unique, first-touch order; out_vals written on
     first touch, so never pre-zeroed). Items own disjoint rows, so they run in parallel without races even when
-    one fine level holds nearly all the work (dense grids, P > 1). ``slot`` (M,) int32 is all −1 on entry and exit.
+    one fine level holds nearly all the work (dense grids, P > 1). ``slot`` (M,) and ``out_rows`` are int32 or int64
+    (``function.row_index_dtype``); ``slot`` is all −1 on entry and exit.
     Each item scans all N points of its entry (rows are cheap arithmetic) and prefetches the slots it owns."""
     N = xn.shape[0]
     E = res.shape[0]

@@ -22,13 +22,15 @@ from inrslam.fields.kernels.pool import BufferPool
 class KernelWorkspace:
     """Scratch of the fused kernels for one layout of E entries over an (M, F) table (None = not created yet)."""
 
-    #: (M,) int32 row → slot map of the row-compaction kernels (slot-based sparse backward, the optimizer's
-    #: ``unique_rows_sum``), all −1 between uses.
+    #: (M,) row → slot map of the row-compaction kernels (slot-based sparse backward, the optimizer's
+    #: ``unique_rows_sum``), all −1 between uses; int32, or int64 for tables of 2^31 rows or more
+    #: (``function.row_index_dtype``).
     slots: np.ndarray | None = None
     #: (acc (M,F), mark_off (E,) int64, mark (Σ⌈rows/8⌉,) uint8) of the accumulator table backward: a dense gradient
     #: and a touched-row bitmap (entry e's bits from byte mark_off[e]), all zero between uses.
     accumulator: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-    #: (rows (C,) int32, values (C,F)) per-item output blocks of the slot-based sparse backward, never zeroed.
+    #: (rows (C,), values (C,F)) per-item output blocks of the slot-based sparse backward (rows of the slots' dtype),
+    #: never zeroed.
     sparse_out: tuple[np.ndarray, np.ndarray] | None = None
     #: Flat buffer of the (E,N,F) level-major copy of the output gradient (accumulator backward).
     level_major: np.ndarray | None = None
