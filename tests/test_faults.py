@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -86,6 +87,20 @@ def assert_one_line_error(proc, code: int, *needles: str) -> str:
     for n in needles:
         assert n in err, (n, err)
     return err
+
+
+def assert_stopped(proc, code: int, *needles: str, held: bool = True) -> str:
+    """`assert_one_line_error` for an interrupted `run`: before its line, the one note that the frame in progress
+    is being finished and saved (`held`; the signal may also land where nothing is held: frame 0, the end)."""
+    lines = proc.stderr.strip().splitlines()
+    notes = [x for x in lines if x.startswith("inrslam: finishing frame ")]
+    assert len(notes) <= 1 and (notes or not held or len(lines) == 1), proc.stderr[-3000:]
+    if notes:
+        assert re.fullmatch(r"inrslam: finishing frame \d+ and saving it, then stopping \(Ctrl-C again stops at "
+                            r"once\)", notes[0]) and lines[0] == notes[0], proc.stderr[-3000:]
+    rest = "\n".join(x for x in lines if x not in notes)
+    return assert_one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, proc.stdout, rest), code,
+                                 *needles)
 
 
 @pytest.fixture(scope="module")
@@ -169,7 +184,7 @@ def test_ctrl_c_in_run_says_how_to_resume_and_resume_completes(work, relative_ru
     os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole foreground group
     stdout, stderr = proc.communicate(timeout=120)
     done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-    assert_one_line_error(done, EXIT_INTERRUPTED, "interrupted", "inrslam run --resume g")
+    assert_stopped(done, EXIT_INTERRUPTED, "interrupted", "inrslam run --resume g", held=False)
     assert RunDir(out).has_checkpoint() and not (out / "metrics.json").exists()
     monkeypatch.chdir(work / "elsewhere")
     assert main(["run", "--resume", str(out), "--quiet"]) == 0
@@ -200,7 +215,7 @@ def test_sigterm_unwinds_like_ctrl_c_and_a_second_process_is_refused_meanwhile(w
     proc.send_signal(signal.SIGTERM)  # the process alone, as `kill` or SLURM's time limit
     stdout, stderr = proc.communicate(timeout=120)
     done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-    assert_one_line_error(done, 128 + signal.SIGTERM, "terminated by SIGTERM; the run can be resumed",
+    assert_stopped(done, 128 + signal.SIGTERM, "terminated by SIGTERM; the run can be resumed",
                           "inrslam run --resume t")
     assert RunDir(out).has_checkpoint() and not (out / "metrics.json").exists()
     with RunDir(out).lock():  # the lock went with its process
@@ -222,7 +237,7 @@ def test_an_interrupt_mid_run_ends_the_frame_and_saves_it(work, monkeypatch):
     proc.send_signal(signal.SIGTERM)
     stdout, stderr = proc.communicate(timeout=120)
     done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-    assert_one_line_error(done, 128 + signal.SIGTERM, "the run can be resumed from its last checkpoint")
+    assert_stopped(done, 128 + signal.SIGTERM, "the run can be resumed from its last checkpoint")
     saved = load_checkpoint(RunDir(out).checkpoint)["next_frame"]
     assert 2 <= saved < FRAMES, saved  # frame 1 or a later one, whole; not the end of SLAM
     frames = [json.loads(x)["frame"] for x in log.read_text().splitlines()]

@@ -165,3 +165,59 @@ def test_a_hold_without_our_handler_changes_nothing(default_sigint):
             signal.raise_signal(signal.SIGINT)
             time.sleep(1.0)
     assert held.signum is None
+
+
+def test_a_repeated_sigterm_does_not_cut_the_held_work_short_and_the_note_is_printed(default_terminating,
+                                                                                      default_sigint, capsys):
+    with defer_interrupts_in_jit():
+        with hold_interrupts("finishing frame 7 and saving it") as held:
+            signal.raise_signal(signal.SIGTERM)
+            signal.raise_signal(signal.SIGTERM)  # a scheduler and `kill` both: still held
+            time.sleep(0.1)
+        assert held.signum == signal.SIGTERM
+    assert capsys.readouterr().err == "inrslam: finishing frame 7 and saving it\n"  # once, for the first
+
+
+def test_a_hold_outside_the_main_thread_changes_nothing(default_sigint):
+    import threading
+
+    entered = threading.Event()
+    release = threading.Event()
+
+    def worker():
+        with hold_interrupts():
+            entered.set()
+            release.wait(5)
+
+    t = threading.Thread(target=worker)
+    t.start()
+    try:
+        entered.wait(5)
+        with defer_interrupts_in_jit():
+            with pytest.raises(KeyboardInterrupt):  # the worker's hold does not swallow the main thread's Ctrl-C
+                signal.raise_signal(signal.SIGINT)
+                time.sleep(1.0)
+    finally:
+        release.set()
+        t.join()
+
+
+def test_terminated_pickles_and_names_its_signal():
+    import pickle
+
+    e = pickle.loads(pickle.dumps(Terminated(signal.SIGTERM)))
+    assert isinstance(e, Terminated) and e.signum == signal.SIGTERM and str(e) == "SIGTERM"
+
+
+def test_an_inactive_hold_lets_signals_through_at_once(default_terminating, default_sigint):
+    """Work that cannot be saved part-way (the map's initialisation) sets `active` False for a while."""
+    with defer_interrupts_in_jit():
+        with hold_interrupts() as held:
+            held.active = False
+            with pytest.raises(Terminated):
+                signal.raise_signal(signal.SIGTERM)
+                time.sleep(1.0)
+            held.active = True
+            signal.raise_signal(signal.SIGTERM)
+            time.sleep(0.1)
+        assert held.signum == signal.SIGTERM

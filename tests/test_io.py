@@ -10,13 +10,14 @@ import socket
 import stat
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 import inrslam.io.atomic as atomic
-from inrslam.errors import DataError, RunError
+from inrslam.errors import DataError, InrslamWarning, RunError
 from inrslam.io.atomic import append_jsonl, atomic_path, write_json, write_text
 from inrslam.io.lock import LockHeld, acquire
 from inrslam.io.rundir import RunDir
@@ -144,13 +145,49 @@ def test_a_folder_lock_names_its_holder_and_frees_when_closed(tmp_path):
     acquire(path).close()  # the file left behind does not block anyone
 
 
+def test_a_file_system_without_locks_goes_on_unlocked(tmp_path, monkeypatch):
+    import errno
+    import fcntl
+
+    def no_locks(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with pytest.warns(InrslamWarning, match=r"this file system takes no locks \(No locks available\); going on"):
+        first, second = acquire(tmp_path / ".lock"), acquire(tmp_path / ".lock")  # neither refused
+    first.close()
+    second.close()
+
+
 def test_a_run_folder_is_held_by_one_process_at_a_time(tmp_path):
     rd = RunDir(tmp_path / "run")
     with rd.lock():
         assert (rd.root / RunDir.LOCK_FILE).is_file()
-        with pytest.raises(RunError, match=r"run: another inrslam process is running in this run folder \(pid "):
+        with pytest.raises(LockHeld):  # what another process meets: the kernel's lock is taken
+            acquire(rd.root / RunDir.LOCK_FILE)
+        with RunDir(rd.root).lock():  # the thread holding it may enter again (a sweep worker, then the runner)
+            pass
+        errors = []
+
+        def other_thread():
+            try:
+                with rd.lock():
+                    pass
+            except RunError as e:
+                errors.append(str(e))
+
+        t = threading.Thread(target=other_thread)
+        t.start()
+        t.join()
+        assert len(errors) == 1
+        assert errors[0].startswith(f"{rd.root}: another inrslam process is running in this run folder (pid ")
+    held = acquire(rd.root / RunDir.LOCK_FILE)  # as another process would hold it
+    try:
+        with pytest.raises(RunError, match=r"another inrslam process is running in this run folder"):
             with rd.lock():
                 pass
+    finally:
+        held.close()
     with rd.lock():  # free again
         pass
     assert not rd.holds_run() and not RunDir(rd.root).remove_stale_temporaries()  # the lock is not a run's file

@@ -730,10 +730,11 @@ def main(argv: list[str] | None = None) -> int:
         message = _interrupted_message(args)
         if isinstance(e, Terminated):  # "interrupted; ..." -> "terminated by SIGTERM; ..."
             message = f"terminated by {e}" + message[len("interrupted"):]
+        try:
             print(f"inrslam {args.command}: {message}", file=sys.stderr)
-            return 128 + e.signum  # as a shell reports a process the signal ended
-        print(f"inrslam {args.command}: {message}", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        except OSError:  # a closed terminal (SIGHUP) takes no more output
+            pass
+        return 128 + e.signum if isinstance(e, Terminated) else EXIT_INTERRUPTED  # as a shell reports it
 
 
 if __name__ == "__main__":

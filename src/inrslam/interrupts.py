@@ -12,6 +12,7 @@ KeyboardInterrupt, so a run or a sweep unwinds as on Ctrl-C (a sweep cancels its
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 import time
 import types
@@ -25,11 +26,14 @@ TERMINATING = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if h
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM or SIGHUP, raised where Ctrl-C would be; `signum` is the signal's number."""
+    """SIGTERM or SIGHUP, raised where Ctrl-C would be; `signum` is the signal's number, `str()` its name."""
 
     def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
+        super().__init__(int(signum))  # args = (signum,): pickled and copied as it was made
         self.signum = int(signum)
+
+    def __str__(self) -> str:
+        return signal.Signals(self.signum).name
 
 
 def interrupt(signum: int) -> KeyboardInterrupt:
@@ -78,22 +82,30 @@ class _Retry:
 
 
 class Held:
-    """What `hold_interrupts` put off: `signum` of the first signal that arrived in its block, else None."""
+    """A `hold_interrupts` block's state: `signum` of the first signal put off (else None); `note`, printed on stderr
+    when one is (what the wait is for); `active`, False to let signals through at once for a while (work that cannot
+    be saved part-way)."""
 
-    def __init__(self) -> None:
+    def __init__(self, note: str | None = None) -> None:
         self.signum: int | None = None
+        self.note = note
+        self.active = True
 
 
-_HOLD: list[Held] = []  # the innermost active hold_interrupts block last
+_HOLD: list[Held] = []  # the main thread's hold_interrupts blocks, innermost last
 
 
 @contextmanager
-def hold_interrupts() -> Iterator[Held]:
-    """Put off a signal that `defer_interrupts_in_jit`'s handler receives until the block ends, so that a unit of
-    work (a SLAM frame) completes and can be saved: the caller reads `Held.signum` afterwards and raises
-    `interrupt(signum)` itself. A second signal inside the block is raised at once (a user who presses Ctrl-C twice
-    does not wait). Where that handler is not installed (a script, a notebook) the block changes nothing."""
-    held = Held()
+def hold_interrupts(note: str | None = None) -> Iterator[Held]:
+    """Put off a signal that `defer_interrupts_in_jit`'s handler receives until the caller is ready, so that a unit
+    of work (a SLAM frame) completes and can be saved: the caller checks `Held.signum` between units and raises
+    `interrupt(signum)` itself. A second Ctrl-C is raised at once (a user who presses it twice does not wait); a
+    repeated SIGTERM or SIGHUP (a scheduler and `kill` both sending one) is not. Where that handler is not installed
+    (a script, a notebook) or outside the main thread, the block changes nothing."""
+    held = Held(note)
+    if threading.current_thread() is not threading.main_thread():
+        yield held
+        return
     _HOLD.append(held)
     try:
         yield held
@@ -102,16 +114,31 @@ def hold_interrupts() -> Iterator[Held]:
 
 
 def _handler(signum: int, frame: types.FrameType | None) -> None:
-    if signum == signal.SIGALRM:  # the retry of a signal put off: raise that one
+    if signum == getattr(signal, "SIGALRM", None):  # the retry of a signal put off: raise that one
         signum = _Retry.signum
-    elif _HOLD and _HOLD[-1].signum is None:  # the first signal in a hold: noted, raised by its caller
-        _HOLD[-1].signum = int(signum)
-        return
-    if in_jit(frame):
+    elif _HOLD and _HOLD[-1].active:
+        held = _HOLD[-1]
+        if held.signum is None:  # the first signal in a hold: noted, raised by its caller
+            held.signum = int(signum)
+            _say(held.note)
+            return
+        if signum != signal.SIGINT:  # a repeated SIGTERM / SIGHUP: the unit still ends and is saved
+            return
+    if in_jit(frame) and hasattr(signal, "SIGALRM"):
         _Retry.arm(signum)
         return
     _Retry.disarm()
     raise interrupt(signum)
+
+
+def _say(note: str | None) -> None:
+    """`note` on stderr, if there is one and stderr can take it (a closed terminal cannot)."""
+    if note:
+        try:
+            sys.stderr.write(f"inrslam: {note}\n")
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
 
 
 def _ours(signum: int) -> bool:

@@ -170,6 +170,30 @@ def test_missing_optional_dependency_message(monkeypatch, tmp_path):
     assert not (tmp_path / "o").exists()  # failed before writing anything
 
 
+def test_a_run_another_process_is_running_is_left_alone(tmp_path):
+    """A sweep reaching a run whose folder another process holds (`.run.lock`: a job of an earlier sweep, a user's
+    `inrslam run --resume`) reports it failed and writes nothing into that folder; the next sweep runs it."""
+    from inrslam.io.lock import acquire
+
+    out = tmp_path / "o"
+    name = "room__dense__direct__quick__s0"
+    (out / name).mkdir(parents=True)
+    (out / name / "error.txt").write_text("the other process's\n")
+    held = acquire(out / name / RunDir.LOCK_FILE)  # as the other process holds it
+    try:
+        res = run_sweep(spec("dense", renders=("direct",)), out, run_fn=FAKE, validate=False, quiet=True,
+                        report=False)
+    finally:
+        held.close()
+    (result,) = res.results.values()
+    assert result["status"] == "failed" and result["busy"]
+    assert "another inrslam process is running in this run folder (pid " in result["error"]
+    assert sorted(p.name for p in (out / name).iterdir()) == [".run.lock", "error.txt"]  # no bench.json
+    assert (out / name / "error.txt").read_text() == "the other process's\n"
+    res = run_sweep(spec("dense", renders=("direct",)), out, run_fn=FAKE, validate=False, quiet=True, report=False)
+    assert res.count("complete") == 1 and not res.failed
+
+
 def test_slurm_refuses_a_fraction_of_a_gpu(tmp_path):
     """SLURM gives whole GPUs: gpus_per_run=0.5 was int()-ed to 0, a job without a GPU; now refused up-front."""
     from inrslam.errors import ConfigError
@@ -351,6 +375,32 @@ def test_slurm_plan_reads_states_from_sacct_and_falls_back_to_submitting(tmp_pat
     assert len(warned) == 4
     assert warned[0].startswith("cannot tell whether slurm job 123_0 of run a is still running (sacct failed")
     assert warned[0].endswith("; submitting the run again")
+
+
+SQUEUE = """#!/bin/sh
+echo "$@" > "${0%/*}/squeue_args"
+printf '99_0|RUNNING\\n123_[2-3]|PENDING\\n'
+"""
+
+
+def test_jobs_the_accounting_does_not_list_yet_are_looked_up_in_the_queue(tmp_path, monkeypatch):
+    """A job sacct does not list (accounting lag) or every job when sacct is missing: `squeue` lists the live ones
+    (array ranges expanded); a job it does not list has ended."""
+    pytest.importorskip("submitit")
+    from inrslam.bench.executors import sacct_states
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for name, text in (("sacct", SACCT), ("squeue", SQUEUE)):
+        (bin_dir / name).write_text(text)
+        (bin_dir / name).chmod(0o755)
+    monkeypatch.setenv("PATH", str(bin_dir))
+    assert sacct_states(["123_0", "99_0", "77_1"]) == ({"123_0": "RUNNING", "99_0": "RUNNING", "77_1": "UNKNOWN"},
+                                                       None)
+    assert (bin_dir / "squeue_args").read_text().split() == ["-h", "-o", "%i|%T", "-j", "77,99"]
+    (bin_dir / "sacct").unlink()  # no accounting at all: the queue alone decides
+    assert sacct_states(["123_0", "123_3", "99_0"]) == ({"123_0": "UNKNOWN", "123_3": "PENDING", "99_0": "RUNNING"},
+                                                        None)
 
 
 # -- Ray: CPUs per run from the cluster's nodes ----------------------------------------------------------------------

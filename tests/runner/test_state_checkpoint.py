@@ -127,13 +127,15 @@ def test_a_full_disk_keeps_the_previous_checkpoint_and_says_so(tmp_path, monkeyp
     assert "previous checkpoint is kept" in str(e.value) and path.read_bytes() == before
 
 
-def test_resume_rejects_another_runs_checkpoint_and_removes_stale_temporaries(tmp_path):
+def test_resume_rejects_another_runs_checkpoint_and_removes_stale_temporaries(tmp_path, monkeypatch):
     a, b = tmp_path / "a", tmp_path / "b"
     run_slam(tiny_cfg(), a)
     run_slam(tiny_cfg(["field.encoding=hash"]), b)
     stale = RunDir(a).checkpoints / ".latest.pt.k1ll3d.tmp.pt"
     stale.write_bytes(os.urandom(1024))  # what kill -9 during a checkpoint write leaves
-    resume_slam(a)  # a complete run: nothing to resume, nothing touched
+    with monkeypatch.context() as m:  # not even the folder's lock: a finished run may be in a read-only folder
+        m.setattr(RunDir, "lock", lambda self: pytest.fail("a complete run's folder was locked for writing"))
+        resume_slam(a)  # a complete run: nothing to resume, nothing touched
     assert stale.exists() and json.loads(RunDir(a).run_info.read_text())["status"] == "complete"
     info = json.loads(RunDir(a).run_info.read_text())
     RunDir(a).run_info.write_text(json.dumps({**info, "status": "running"}))  # as if killed before it finished

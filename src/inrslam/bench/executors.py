@@ -22,6 +22,7 @@ from typing import Any, Iterator, Mapping, Protocol
 
 from inrslam.bench.worker import run_one
 from inrslam.errors import ConfigError, InrslamError
+from inrslam.interrupts import hold_interrupts, interrupt
 from inrslam.io.atomic import write_json
 from inrslam.registry import Registry
 from inrslam.status import logger
@@ -208,8 +209,8 @@ def _import_submitit():
 
 INFLIGHT_FILE = "inflight.json"  # in <folder>/slurm: the jobs submitted and not yet seen finished
 RECORDED_CLUSTERS = ("slurm", "local")  # "debug" runs its jobs inside the driver: nothing outlives it
-LIVE_STATES = frozenset({"PENDING", "RUNNING", "REQUEUED", "COMPLETING", "CONFIGURING", "RESIZING", "SUSPENDED",
-                         "READY", "PREEMPTED"})  # submitit's unfinished states, without UNKNOWN
+LIVE_STATES = frozenset({"READY", "PENDING", "RUNNING", "REQUEUED", "COMPLETING", "PREEMPTED"})  # what submitit
+# waits on (`is_done`), without UNKNOWN: an attached job in another state would read as failed at once
 
 
 def run_key(out_dir: str, name: str) -> str:
@@ -288,9 +289,31 @@ def sacct_states(job_ids: list[str]) -> tuple[dict[str, str | None], str | None]
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=120).stdout
     except (OSError, subprocess.SubprocessError) as e:
-        return dict.fromkeys(job_ids), f"sacct failed: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
-    info = SlurmInfoWatcher().read_info(out)
-    return {j: info.get(j, {}).get("State") or "UNKNOWN" for j in job_ids}, None
+        states: dict[str, str | None] = dict.fromkeys(job_ids)
+        why: str | None = f"sacct failed: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
+    else:
+        info = SlurmInfoWatcher().read_info(out)
+        states, why = {j: info.get(j, {}).get("State") or "UNKNOWN" for j in job_ids}, None
+    unseen = [j for j in job_ids if states[j] in (None, "UNKNOWN")]  # not yet in the accounting, or no sacct
+    queued = squeue_states(unseen) if unseen else {}
+    if queued is not None:
+        states.update({j: queued.get(j, "UNKNOWN") for j in unseen})  # squeue lists every live job
+        why = None
+    return states, why
+
+
+def squeue_states(job_ids: list[str]) -> dict[str, str] | None:
+    """States of those of `job_ids` still in SLURM's queue, by one `squeue` call (a job it does not list has
+    ended); None when squeue cannot be run. Array ranges ('123_[5-7]') are expanded as sacct's are."""
+    from submitit.slurm.slurm import SlurmInfoWatcher
+
+    cmd = ["squeue", "-h", "-o", "%i|%T", "-j", ",".join(sorted({j.split("_")[0] for j in job_ids}))]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=120).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None
+    info = SlurmInfoWatcher().read_info("JobID|State\n" + out)
+    return {j: info[j]["State"] for j in job_ids if j in info and info[j].get("State")}
 
 
 def local_state(folder: Path, job_id: str) -> str:
@@ -419,13 +442,17 @@ class SlurmExecutor:
             job = _attach(submitit, ex.cluster, folder, rec["job_id"])
             pending.append((job, call))
             book.add(job.job_id, call)
-        if plan.submit:
-            with ex.batch():
-                new = [(ex.submit(run_one, threads=self.threads, **call), call) for call in plan.submit]
-            for job, call in new:
-                book.add(job.job_id, call)
-            pending += new
-        book.save()
+        with hold_interrupts() as held:  # a Ctrl-C here waits until the submitted jobs are recorded
+            if plan.submit:
+                with ex.batch():
+                    new = [(ex.submit(run_one, threads=self.threads, **call), call) for call in plan.submit]
+                for job, call in new:
+                    book.add(job.job_id, call)
+                pending += new
+            book.save()
+        if held.signum is not None:
+            _cancel(pending, book)
+            raise interrupt(held.signum)
         poll = self.options.poll_s if self.options.poll_s is not None else (10.0 if ex.cluster == "slurm" else 0.2)
         yield from self._wait(pending, book, poll, folder)
 
@@ -447,11 +474,16 @@ class SlurmExecutor:
                 if pending:
                     time.sleep(poll)
         finally:
-            for job, _ in pending:
-                try:
-                    job.cancel(check=False)
-                except Exception:  # noqa: BLE001 - best effort
-                    continue
-                book.jobs.pop(str(job.job_id), None)
-            if pending:
-                book.save()
+            _cancel(pending, book)
+
+
+def _cancel(pending: list, book: InflightBook) -> None:
+    """Cancel the jobs not finished (best effort) and forget the records of those cancelled."""
+    for job, _ in pending:
+        try:
+            job.cancel(check=False)
+        except Exception:  # noqa: BLE001 - best effort
+            continue
+        book.jobs.pop(str(job.job_id), None)
+    if pending:
+        book.save()

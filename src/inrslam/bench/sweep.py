@@ -243,8 +243,9 @@ def _lock_folder(out: Path):
 
 
 def _record(out: Path, result: dict) -> None:
-    """Make sure a failed run has an error.txt, even when its worker died before writing one."""
-    if result.get("status") != "failed":
+    """Make sure a failed run has an error.txt, even when its worker died before writing one (not in a folder
+    another process holds: `busy`)."""
+    if result.get("status") != "failed" or result.get("busy"):
         return
     err = RunDir(result.get("run_dir") or out / result["name"]).error
     if not err.exists():

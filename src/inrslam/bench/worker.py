@@ -13,9 +13,11 @@ import os
 import sys
 import time
 import traceback
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Callable
 
+from inrslam.errors import RunError
 from inrslam.io.rundir import RunDir
 
 RUN_FN_ENV = "INRSLAM_BENCH_RUN_FN"
@@ -100,7 +102,8 @@ def slam_run(run: dict, run_dir: Path) -> dict:
 def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | None = None) -> dict:
     """Run one sweep combination into `out_dir/run['name']`; never raises.
 
-    Returns {name, status ("complete" | "skipped" | "failed"), run_dir, error (one line or None), seconds, pid}.
+    Returns {name, status ("complete" | "skipped" | "failed"), run_dir, error (one line or None), seconds, pid};
+    `busy` True when another process holds the run's folder (`RunDir.lock`), which is then left as it is.
     """
     from inrslam.io.atomic import write_json, write_text
 
@@ -112,18 +115,22 @@ def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | N
     t0 = time.perf_counter()
     saved = _thread_state()  # in-process runs give the caller its thread counts and environment back
     try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        rd.error.unlink(missing_ok=True)
-        write_json(rd.bench, run)
-        set_threads(threads or os.cpu_count() or 1)
-        extra = resolve_run_fn(run_fn)(run, run_dir)
-        if not rd.is_complete():
-            info = rd.read_run_info() or {}
-            raise RuntimeError(f"the run function returned but {run_dir} is not complete "
-                               f"(run_info status {info.get('status')!r}, metrics.json "
-                               f"{'present' if rd.metrics.is_file() else 'missing'})")
-        result.update(extra if isinstance(extra, dict) else {})
-        result["status"] = "complete"
+        with ExitStack() as stack:
+            try:  # before any file is touched: another process may be running this run (the runner re-enters it)
+                stack.enter_context(rd.lock())
+            except RunError as e:  # its folder is left alone: no bench.json, no error.txt
+                return {**result, "status": "failed", "busy": True, "error": str(e)}
+            rd.error.unlink(missing_ok=True)
+            write_json(rd.bench, run)
+            set_threads(threads or os.cpu_count() or 1)
+            extra = resolve_run_fn(run_fn)(run, run_dir)
+            if not rd.is_complete():
+                info = rd.read_run_info() or {}
+                raise RuntimeError(f"the run function returned but {run_dir} is not complete "
+                                   f"(run_info status {info.get('status')!r}, metrics.json "
+                                   f"{'present' if rd.metrics.is_file() else 'missing'})")
+            result.update(extra if isinstance(extra, dict) else {})
+            result["status"] = "complete"
     except BaseException as e:  # noqa: BLE001 - a sweep records every failure, including KeyboardInterrupt in a worker
         tb = traceback.format_exc()
         try:

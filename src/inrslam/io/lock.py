@@ -2,15 +2,21 @@
 
 An exclusive, non-blocking `flock` on a small file in the folder, which names its holder ("pid N on HOST"). The
 kernel releases it when the holding file is closed or its process ends, however it ends (a SIGKILL too), so a
-lock file left behind never blocks anyone. Where `fcntl` is missing (Windows) no lock is taken.
+lock file left behind never blocks anyone. Where `fcntl` is missing (Windows) or the file system has no locks (some
+network mounts: ENOLCK; a warning says so) no lock is taken. Some cluster file systems take locks per node only
+(Lustre mounted with `localflock`, NFS with `nolock`): there two nodes can both hold one.
 """
 
 from __future__ import annotations
 
+import errno
 import os
 import socket
+import warnings
 from pathlib import Path
 from typing import TextIO
+
+from inrslam.errors import InrslamWarning
 
 
 class LockHeld(Exception):
@@ -27,18 +33,30 @@ def acquire(path: str | os.PathLike) -> TextIO:
     path = Path(path)
     f = open(path, "a+", encoding="utf-8")
     try:
+        if _lock(f, path):
+            f.seek(0)
+            f.truncate()
+            f.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+            f.flush()
+    except BaseException:
+        f.close()
+        raise
+    return f
+
+
+def _lock(f: TextIO, path: Path) -> bool:
+    """flock `f`; False where no lock can be taken (no fcntl, or a file system without locks: a warning)."""
+    try:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX
-        return f
+        return False
     try:
         fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+        return True
+    except OSError as e:
+        if e.errno not in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EACCES):  # e.g. ENOLCK: a file system without
+            warnings.warn(f"{path.parent}: this file system takes no locks ({e.strerror}); going on without the "
+                          "one-process-per-folder lock", InrslamWarning, stacklevel=3)
+            return False
         f.seek(0)
-        holder = f.read().strip() or "another process"
-        f.close()
-        raise LockHeld(path, holder) from None
-    f.seek(0)
-    f.truncate()
-    f.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
-    f.flush()
-    return f
+        raise LockHeld(path, f.read().strip() or "another process") from None

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
@@ -16,6 +17,8 @@ from typing import Any, Iterator
 from inrslam.errors import RunError
 from inrslam.io.atomic import temporary_files, write_json
 from inrslam.io.lock import LockHeld, acquire
+
+_HELD: dict[str, int] = {}  # run folders this process holds (`RunDir.lock`): resolved path -> holding thread
 
 
 def read_json(path: str | os.PathLike) -> Any:
@@ -135,16 +138,23 @@ class RunDir:
     def lock(self) -> Iterator[None]:
         """Hold the folder's lock for a block: one process at a time runs, resumes or overwrites this run (two would
         write the same files, and each would delete the other's half-written ones). RunError naming the holder when
-        another process has it; the kernel frees it when its holder ends, however it ends."""
+        another process (or another thread of this one) has it; the thread holding it may enter again (a sweep
+        worker, then the runner inside it). The kernel frees it when its holder ends, however it ends."""
         self.root.mkdir(parents=True, exist_ok=True)
+        key = str(self.root.resolve())
+        if _HELD.get(key) == threading.get_ident():
+            yield
+            return
         try:
             held = acquire(self.root / self.LOCK_FILE)
         except LockHeld as e:
             raise RunError(f"{self.root}: another inrslam process is running in this run folder ({e.holder}); wait "
                            "for it to end, or stop it and continue with --resume") from None
+        _HELD[key] = threading.get_ident()
         try:
             yield
         finally:
+            del _HELD[key]
             held.close()
 
     # -- JSON files --------------------------------------------------------------------------------------------------

@@ -71,6 +71,9 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
     rd = RunDir(run_dir)
     if not rd.holds_run():
         raise ConfigError(f"{run_dir}: not a run directory (no config.yaml)")
+    if rd.is_complete():  # checked before the lock too: a finished run may sit in a folder this user cannot write
+        stage(log, f"{run_dir}: the run is already complete; nothing to resume (--overwrite runs it again)")
+        return run_dir
     with rd.lock():  # before anything is read: the process holding it may still be writing
         if rd.is_complete():  # nothing to do (resuming it would mark it running again and redo its evaluation)
             stage(log, f"{run_dir}: the run is already complete; nothing to resume (--overwrite runs it again)")
@@ -89,21 +92,27 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
 def _drive(system: SlamSystem, writer: RunWriter, resume: bool, progress: Progress | None) -> Path:
     """Feed the loop every remaining frame, writing as it goes; then the final outputs and the evaluation."""
     writer.start(resume)
-    for i in range(system.state.next_frame, system.n_frames):
-        if i == 0:  # the map's initialisation: an interrupt stops it at once (nothing to save yet)
-            with _initialisation_status(system):
+    # Ctrl-C / SIGTERM (from `inrslam run`) let the frame in progress end; it is saved, then the run stops
+    with hold_interrupts() as held:
+        for i in range(system.state.next_frame, system.n_frames):
+            held.note = f"finishing frame {i} and saving it, then stopping (Ctrl-C again stops at once)"
+            if i == 0:  # the map's initialisation stops at once (it cannot be saved part-way)
+                held.active = False
+                with _initialisation_status(system):
+                    writer.log(system.process(i))
+                held.active = True
+            else:
                 writer.log(system.process(i))
-            writer.after_frame(i)
-        else:  # Ctrl-C / SIGTERM (from `inrslam run`) end the frame, which is saved, then stop
-            with hold_interrupts() as held:
-                writer.log(system.process(i))
-                saved = writer.after_frame(i)
+            saved = writer.after_frame(i)
+            if progress:
+                progress(i, system.n_frames, system.progress_info(i))
             if held.signum is not None:
                 if not saved:
                     writer.checkpoint()  # every finished frame is kept: a resume goes on from the next one
                 raise interrupt(held.signum)
-        if progress:
-            progress(i, system.n_frames, system.progress_info(i))
+    if held.signum is not None:  # arrived as the last frame's turn ended
+        writer.checkpoint()
+        raise interrupt(held.signum)
     metrics = writer.finish()
     return _evaluate(system, writer, metrics)
 
