@@ -277,6 +277,35 @@ def test_ctrl_c_in_bench_keeps_finished_runs_and_says_how_to_resume(tmp_path, si
     assert res.count("skipped") == 1 and res.count("complete") == 1 and not res.failed
 
 
+def test_sigterm_to_a_sweep_lets_its_workers_save_the_frame_in_progress(work):
+    """`kill` of an `inrslam bench` driver: the executor stops its workers, each ends its frame and saves it (no
+    periodic checkpoint was due), and the same command resumes the run from there."""
+    spec = work / "held.yaml"
+    spec.write_text(yaml.safe_dump({
+        "encodings": ["dense"], "renders": ["direct"], "presets": ["quick"],
+        "scenes": [{"name": "rr", "path": str(work / "data" / "room_rep")}],
+        "overrides": ["threads=1", "slam.init_iters=30", "slam.init_pixels=512", "slam.checkpoint_every=100",
+                      "slam.track_iters=150", "output.tensorboard=false", "eval.heldout_every=0",
+                      "eval.n_samples=2000"]}))
+    out = work / "held_sweep"
+    proc = subprocess.Popen([sys.executable, "-m", "inrslam.cli", "bench", str(spec), "--out", str(out)], cwd=work,
+                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    logs = lambda: list(out.glob("*/log.jsonl"))  # noqa: E731
+    wait_for(lambda: proc.poll() is not None or any('"frame": 1' in p.read_text() for p in logs()), 240, 0.01)
+    assert proc.poll() is None, f"sweep ended before it could be stopped: {proc.stderr.read()[-2000:]}"
+    proc.send_signal(signal.SIGTERM)  # the driver alone
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, stderr[-3000:]
+    assert "terminated by SIGTERM; finished runs are kept" in stderr
+    (run,) = [p.parent for p in logs()]
+    saved = load_checkpoint(RunDir(run).checkpoint)["next_frame"]
+    assert 2 <= saved < FRAMES, saved  # frame 1 or a later one, saved by the worker as it stopped
+    res = run_sweep(spec, out, quiet=True, report=False)
+    (result,) = res.results.values()
+    assert result["status"] == "complete" and result["resumed"], result
+
+
 # -- e. failed sweep runs ------------------------------------------------------------------------------------------
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 from inrslam.errors import RunError
+from inrslam.interrupts import defer_interrupts_in_jit
 from inrslam.io.rundir import RunDir
 
 RUN_FN_ENV = "INRSLAM_BENCH_RUN_FN"
@@ -123,6 +124,9 @@ def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | N
             rd.error.unlink(missing_ok=True)
             write_json(rd.bench, run)
             set_threads(threads or os.cpu_count() or 1)
+            # in a worker process: Ctrl-C / SIGTERM (the executor stopping its workers) end the frame in progress,
+            # which is saved (`inrslam.runner`); a handler already set (the CLI's, a scheduler's) is kept
+            stack.enter_context(defer_interrupts_in_jit())
             extra = resolve_run_fn(run_fn)(run, run_dir)
             if not rd.is_complete():
                 info = rd.read_run_info() or {}
