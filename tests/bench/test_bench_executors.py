@@ -267,7 +267,7 @@ def test_slurm_reattaches_to_jobs_a_killed_driver_left_running(tmp_path, monkeyp
     pytest.importorskip("submitit")
     from submitit import LocalJob
 
-    from inrslam.bench.executors import INFLIGHT_FILE, local_state, read_inflight
+    from inrslam.bench.slurm_jobs import INFLIGHT_FILE, local_state, read_inflight
 
     monkeypatch.setenv("PYTHONPATH", PYTHONPATH)
     out = tmp_path / "sweep"
@@ -310,13 +310,13 @@ def _call(out: str, name: str) -> dict:
 
 
 def _rec(job_id: str, out: str, name: str, cluster: str = "slurm") -> dict:
-    from inrslam.bench.executors import job_record
+    from inrslam.bench.slurm_jobs import job_record
 
     return job_record(job_id, cluster, _call(out, name))
 
 
 def test_plan_reattach_waits_only_on_live_jobs_of_the_same_run_dir(tmp_path):
-    from inrslam.bench.executors import plan_reattach
+    from inrslam.bench.slurm_jobs import plan_reattach
 
     out, other = str(tmp_path / "o"), str(tmp_path / "other")
     calls = [_call(out, n) for n in ("live", "pending", "done", "cancelled", "unknown", "unsure", "new", "elsewhere")]
@@ -346,7 +346,8 @@ def test_slurm_plan_reads_states_from_sacct_and_falls_back_to_submitting(tmp_pat
     """With a stand-in `sacct` on PATH the recorded array elements still running or pending are re-attached; with
     no sacct every run is submitted again, with a warning naming the job."""
     pytest.importorskip("submitit")
-    from inrslam.bench.executors import INFLIGHT_FILE, ExecutorOptions, SlurmExecutor, sacct_states
+    from inrslam.bench.executors import ExecutorOptions, SlurmExecutor
+    from inrslam.bench.slurm_jobs import INFLIGHT_FILE, sacct_states
     from inrslam.io.atomic import write_json
 
     out, folder, bin_dir = str(tmp_path / "o"), tmp_path / "o" / "slurm", tmp_path / "bin"
@@ -387,7 +388,7 @@ def test_jobs_the_accounting_does_not_list_yet_are_looked_up_in_the_queue(tmp_pa
     """A job sacct does not list (accounting lag) or every job when sacct is missing: `squeue` lists the live ones
     (array ranges expanded); a job it does not list has ended."""
     pytest.importorskip("submitit")
-    from inrslam.bench.executors import sacct_states
+    from inrslam.bench.slurm_jobs import sacct_states
 
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
