@@ -130,15 +130,21 @@ def test_input_grad_only_skips_the_table_gradient(monkeypatch):
     assert res[1][1].abs().sum() > 0
 
 
+def _row_slot_case(layout: TableLayout) -> tuple[torch.Tensor, ...]:
+    """Fresh float64 (table, points partly outside the box, decoder weights, normals' cotangent) for 200 points."""
+    table = torch.randn(layout.total_rows, 2, dtype=torch.float64)
+    x = torch.rand(200, 3, dtype=torch.float64) * 1.2 - 0.1
+    w = torch.randn(layout.n_entries * 2, dtype=torch.float64)
+    cot = torch.randn(200, 3, dtype=torch.float64)
+    return table, x, w, cot
+
+
 @pytest.mark.parametrize("name", ["dense", "hash"])
 def test_second_order_row_slot_path_matches_reference(monkeypatch, name):
     """Tables too large for the accumulator (fine dense grids) take the row-slot scatter."""
     monkeypatch.setattr(function, "ACCUMULATOR_MAX_BYTES", 0)
     layout = TableLayout.build(ENTRIES[name])
-    table = torch.randn(layout.total_rows, 2, dtype=torch.float64)
-    x = torch.rand(200, 3, dtype=torch.float64) * 1.2 - 0.1
-    w = torch.randn(layout.n_entries * 2, dtype=torch.float64)
-    cot = torch.randn(200, 3, dtype=torch.float64)
+    table, x, w, cot = _row_slot_case(layout)
     fused = _normals_loss_grads("numba", layout, table, x, w, cot, True, scoped=True)
     ref = _normals_loss_grads("torch", layout, table, x, w, cot, None)
     for a, b, what in zip(fused, ref, ("normals", "d/dx", "d/dtable")):
@@ -151,10 +157,7 @@ def test_second_order_row_slot_path_with_int64_row_indices(monkeypatch, name):
     slots, as tables of 2^31 rows or more get them (forced here): bit for bit the int32 results and the reference's."""
     monkeypatch.setattr(function, "ACCUMULATOR_MAX_BYTES", 0)
     layout = TableLayout.build(ENTRIES[name])
-    table = torch.randn(layout.total_rows, 2, dtype=torch.float64)
-    x = torch.rand(200, 3, dtype=torch.float64) * 1.2 - 0.1
-    w = torch.randn(layout.n_entries * 2, dtype=torch.float64)
-    cot = torch.randn(200, 3, dtype=torch.float64)
+    table, x, w, cot = _row_slot_case(layout)
     fused = []
     for index in (np.int32, np.int64):
         if index is np.int64:
