@@ -11,8 +11,8 @@ KeyboardInterrupt, so a run or a sweep unwinds as on Ctrl-C (a sweep cancels its
 
 from __future__ import annotations
 
+import os
 import signal
-import sys
 import threading
 import time
 import types
@@ -114,8 +114,13 @@ def hold_interrupts(note: str | None = None) -> Iterator[Held]:
 
 
 def _handler(signum: int, frame: types.FrameType | None) -> None:
-    if signum == getattr(signal, "SIGALRM", None):  # the retry of a signal put off: raise that one
+    if signum == getattr(signal, "SIGALRM", None):  # the retry of a signal put off: raise that one ...
         signum = _Retry.signum
+        if _HOLD and _HOLD[-1].active and _HOLD[-1].signum is None:  # ... or hand it to a hold begun since
+            _Retry.disarm()
+            _HOLD[-1].signum = signum
+            _say(_HOLD[-1].note)
+            return
     elif _HOLD and _HOLD[-1].active:
         held = _HOLD[-1]
         if held.signum is None:  # the first signal in a hold: noted, raised by its caller
@@ -132,13 +137,29 @@ def _handler(signum: int, frame: types.FrameType | None) -> None:
 
 
 def _say(note: str | None) -> None:
-    """`note` on stderr, if there is one and stderr can take it (a closed terminal cannot)."""
+    """`note` on stderr (file descriptor 2, unbuffered: the handler may interrupt a write to `sys.stderr`), if
+    there is one and stderr can take it (a closed terminal cannot)."""
     if note:
         try:
-            sys.stderr.write(f"inrslam: {note}\n")
-            sys.stderr.flush()
-        except (OSError, ValueError):
+            os.write(2, f"inrslam: {note}\n".encode())
+        except OSError:
             pass
+
+
+@contextmanager
+def signals_blocked() -> Iterator[None]:
+    """Block SIGINT, SIGTERM and SIGHUP for a short block (main thread, POSIX), and so for the processes it starts
+    (they inherit the mask): a terminal's Ctrl-C reaches the whole process group, and a child that must not be cut
+    short (`sbatch`) is not. Signals that arrive meanwhile are delivered when the block ends."""
+    mask = getattr(signal, "pthread_sigmask", None)
+    if mask is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = mask(signal.SIG_BLOCK, {int(signal.SIGINT), *TERMINATING})
+    try:
+        yield
+    finally:
+        mask(signal.SIG_SETMASK, previous)
 
 
 def _ours(signum: int) -> bool:

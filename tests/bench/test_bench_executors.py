@@ -404,6 +404,77 @@ def test_jobs_the_accounting_does_not_list_yet_are_looked_up_in_the_queue(tmp_pa
                                                         None)
 
 
+def test_a_job_alive_in_a_state_submitit_does_not_wait_on_is_neither_attached_nor_called_finished(tmp_path,
+                                                                                                  monkeypatch, caplog):
+    """CONFIGURING / SUSPENDED jobs: submitit would read them as done at once, so they are not attached; their runs
+    are submitted again with a warning saying the state (the new job then finds the folder locked)."""
+    pytest.importorskip("submitit")
+    import inrslam.bench.executors as executors
+    from inrslam.bench.executors import ExecutorOptions, SlurmExecutor
+    from inrslam.bench.slurm_jobs import INFLIGHT_FILE, settled
+    from inrslam.io.atomic import write_json
+
+    assert [settled(x) for x in ("RUNNING", "CANCELLED by 0", "UNKNOWN", "FINISHED", "CONFIGURING", "SUSPENDED",
+                                 None)] == ["RUNNING", "CANCELLED by 0", "UNKNOWN", "FINISHED", None, None, None]
+    out, folder = str(tmp_path / "o"), tmp_path / "o" / "slurm"
+    write_json(folder / INFLIGHT_FILE, {"jobs": [_rec("7_0", out, "a"), _rec("7_1", out, "b")]})
+    monkeypatch.setattr(executors, "sacct_states", lambda ids: ({"7_0": "CONFIGURING", "7_1": "RUNNING"}, None))
+    plan = SlurmExecutor(ExecutorOptions(folder=out, cluster="slurm"))._plan("slurm", folder,
+                                                                             [_call(out, "a"), _call(out, "b")])
+    assert [c["run"]["name"] for c in plan.submit] == ["a"] and [r["job_id"] for r, _ in plan.attach] == ["7_1"]
+    assert any("slurm job 7_0 of run a is still running (state CONFIGURING, which submitit does not wait on)" in m
+               for m in caplog.messages)
+
+
+INVALID_ID = """#!/bin/sh
+echo "slurm_load_jobs error: Invalid job id specified" >&2
+exit 1
+"""
+
+
+def test_a_single_job_id_the_queue_has_forgotten_has_ended(tmp_path, monkeypatch):
+    """`squeue -j ID` of one job that left the controller's memory exits 1 ("Invalid job id"): ended, not unknown."""
+    pytest.importorskip("submitit")
+    from inrslam.bench.slurm_jobs import sacct_states, squeue_states
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "squeue").write_text(INVALID_ID)
+    (bin_dir / "squeue").chmod(0o755)
+    monkeypatch.setenv("PATH", str(bin_dir))
+    assert squeue_states(["55_0"]) == {}
+    assert sacct_states(["55_0"]) == ({"55_0": "UNKNOWN"}, None)  # no sacct here: the queue decided
+
+
+def test_a_signal_to_one_local_worker_fails_its_run_and_the_sweep_goes_on(tmp_path, monkeypatch):
+    """`kill PID` of one worker (a memory watchdog): that run is failed (it resumes from its checkpoint next time),
+    the other runs complete, and the sweep is not interrupted."""
+    import signal
+    import threading
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))  # tests/: the fault run functions
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                      os.environ.get("PYTHONPATH", "")]))
+    out = tmp_path / "o"
+    spec_ = {**spec("dense", renders=("direct",)), "seeds": [0, 1]}
+    started = out / "room__dense__direct__quick__s1" / "started"
+
+    def kill_when_started():
+        assert wait_for(lambda: started.is_file() and started.read_text().strip(), 120, 0.02)
+        os.kill(int(started.read_text()), signal.SIGTERM)
+
+    killer = threading.Thread(target=kill_when_started)
+    killer.start()
+    try:
+        res = run_sweep(spec_, out, run_fn="fault_runs:hang_other_seeds", jobs=2, validate=False, quiet=True,
+                        report=False)
+    finally:
+        killer.join()
+    assert not res.interrupted and res.count("complete") == 1
+    (failed,) = res.failed
+    assert "the worker was stopped by SIGTERM" in res.results[failed]["error"]
+
+
 # -- Ray: CPUs per run from the cluster's nodes ----------------------------------------------------------------------
 
 NODES = [{"Alive": True, "Resources": {"CPU": 8.0, "GPU": 1.0}}, {"Alive": True, "Resources": {"CPU": 4.0}},

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import struct
 
 import numpy as np
@@ -13,6 +14,7 @@ import torch
 from inrslam.config import load_config
 from inrslam.datasets import open_dataset
 from inrslam.errors import InrslamError, RunError
+from inrslam.interrupts import Terminated, defer_interrupts_in_jit
 from inrslam.io.rundir import RunDir
 from inrslam.runner import resume_slam, run_slam
 from inrslam.runner.checkpoint import load_checkpoint, save_checkpoint
@@ -203,3 +205,37 @@ def test_an_overwrite_that_cannot_start_keeps_the_finished_run(tmp_path, bad):
     with pytest.raises(InrslamError):
         run_slam(load_config(preset="quick", overrides=[bad]), out, overwrite=True)
     assert {p.name: p.read_text() for p in out.iterdir()} == kept
+
+
+@pytest.fixture
+def our_signal_handlers():
+    """SIGINT / SIGTERM at their defaults, so that `defer_interrupts_in_jit` installs its handler (as `inrslam run`)."""
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    with defer_interrupts_in_jit():
+        yield
+    for s, h in saved.items():
+        signal.signal(s, h)
+
+
+@pytest.mark.parametrize("callback_fails", [False, True])
+def test_a_signal_during_a_frame_saves_it_even_if_the_progress_callback_fails(tmp_path, our_signal_handlers,
+                                                                              callback_fails):
+    """A SIGTERM in frame 1's progress report (no periodic checkpoint due) lets the frame end, saves it and stops the
+    run; so it does when the callback (a live viewer) then fails. Frame 2 is never started."""
+    seen = []
+
+    def progress(i, n, info):
+        seen.append(i)
+        if i == 1:
+            signal.raise_signal(signal.SIGTERM)  # held
+            if callback_fails:
+                raise RuntimeError("the viewer broke")
+
+    out = tmp_path / "r"
+    with pytest.raises(Terminated):
+        run_slam(tiny_cfg(["slam.checkpoint_every=100"]), out, progress=progress)
+    assert load_checkpoint(RunDir(out).checkpoint)["next_frame"] == 2 and seen == [0, 1]
+    resume_slam(out)
+    assert RunDir(out).is_complete()

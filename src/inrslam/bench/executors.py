@@ -27,10 +27,11 @@ from inrslam.bench.slurm_jobs import (
     plan_reattach,
     read_inflight,
     sacct_states,
+    settled,
 )
 from inrslam.bench.worker import run_one
 from inrslam.errors import ConfigError, InrslamError
-from inrslam.interrupts import hold_interrupts, interrupt
+from inrslam.interrupts import hold_interrupts, interrupt, signals_blocked
 from inrslam.registry import Registry
 from inrslam.status import logger
 
@@ -116,6 +117,10 @@ class LocalExecutor:
                             broken = True
                             inflight[fut] = call
                             continue
+                        except KeyboardInterrupt as e:  # a signal to that worker alone (`kill PID`, a memory
+                            # watchdog): its run saved its frame and is failed; the sweep goes on
+                            res = failed_result(call, f"the worker was stopped by {e or 'SIGINT'} (its run resumes "
+                                                      "from its last checkpoint)")
                         except Exception as e:  # noqa: BLE001 - e.g. an unpicklable result
                             res = failed_result(call, f"{type(e).__name__}: {e}")
                         yield res
@@ -250,11 +255,13 @@ class SlurmExecutor:
         if cluster not in RECORDED_CLUSTERS or not records:
             return ReattachPlan(submit=list(calls))
         ids = [r["job_id"] for r in records]
-        states, why = sacct_states(ids) if cluster == "slurm" else local_states(folder, ids)
+        raw, why = sacct_states(ids) if cluster == "slurm" else local_states(folder, ids)
+        states = {j: settled(state) for j, state in raw.items()}
         plan = plan_reattach(calls, records, states)
-        for rec in plan.unsure:
+        for rec in plan.unsure:  # submitted again: if the old job still runs it, the new one finds its folder locked
+            reason = f"state {raw[rec['job_id']]}, which submitit does not wait on" if raw.get(rec["job_id"]) else why
             log.warning("cannot tell whether %s job %s of run %s is still running (%s); submitting the run again",
-                        cluster, rec["job_id"], rec["name"], why)
+                        cluster, rec["job_id"], rec["name"], reason)
         for rec, _ in plan.attach:  # a warning: shown by `inrslam bench` (an earlier driver was killed)
             log.warning("re-attaching to %s job %s (%s) of run %s, still in flight from an earlier sweep: waiting on "
                      "it instead of submitting the run again", cluster, rec["job_id"], states[rec["job_id"]],
@@ -274,8 +281,9 @@ class SlurmExecutor:
             book.add(job.job_id, call)
         with hold_interrupts() as held:  # a Ctrl-C here waits until the submitted jobs are recorded
             if plan.submit:
-                with ex.batch():
-                    new = [(ex.submit(run_one, threads=self.threads, **call), call) for call in plan.submit]
+                with signals_blocked():  # and sbatch, in the terminal's process group too, is not stopped by it
+                    with ex.batch():
+                        new = [(ex.submit(run_one, threads=self.threads, **call), call) for call in plan.submit]
                 for job, call in new:
                     book.add(job.job_id, call)
                 pending += new

@@ -26,6 +26,17 @@ INFLIGHT_FILE = "inflight.json"  # in <folder>/slurm: the jobs submitted and not
 RECORDED_CLUSTERS = ("slurm", "local")  # "debug" runs its jobs inside the driver: nothing outlives it
 LIVE_STATES = frozenset({"READY", "PENDING", "RUNNING", "REQUEUED", "COMPLETING", "PREEMPTED"})  # what submitit
 # waits on (`is_done`), without UNKNOWN: an attached job in another state would read as failed at once
+ENDED_STATES = frozenset({"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "BOOT_FAIL",
+                          "DEADLINE", "REVOKED", "FINISHED", "UNKNOWN"})  # SLURM's final states; FINISHED: local jobs
+
+
+def settled(state: str | None) -> str | None:
+    """`state` where it decides (live as submitit waits on it, or ended); None for a job alive in a state submitit
+    would not wait on (CONFIGURING, SUSPENDED, STOPPED, ...): its run cannot be re-attached, nor called finished."""
+    if state is None:
+        return None
+    first = (state.split() or ["UNKNOWN"])[0].upper()
+    return state if first in LIVE_STATES or first in ENDED_STATES else None
 
 
 def run_key(out_dir: str, name: str) -> str:
@@ -124,9 +135,12 @@ def squeue_states(job_ids: list[str]) -> dict[str, str] | None:
 
     cmd = ["squeue", "-h", "-o", "%i|%T", "-j", ",".join(sorted({j.split("_")[0] for j in job_ids}))]
     try:
-        out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=120).stdout
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     except (OSError, subprocess.SubprocessError):
         return None
+    if done.returncode != 0:  # one job id that left the queue's memory is an error; several are not
+        return {} if "invalid job id" in done.stderr.lower() else None
+    out = done.stdout
     info = SlurmInfoWatcher().read_info("JobID|State\n" + out)
     return {j: info[j]["State"] for j in job_ids if j in info and info[j].get("State")}
 

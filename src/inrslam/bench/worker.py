@@ -1,7 +1,8 @@
 """The per-run function every executor calls: `run_one(run, out_dir) -> {status, run_dir, error, ...}`.
 
-It never raises: a failing run writes `<run_dir>/error.txt` (full traceback) and returns status "failed", so one bad
-combination cannot stop a sweep. The SLAM work itself is done by a *run function* `fn(run: dict, run_dir: Path)`,
+It never raises but for an interrupt: a failing run writes `<run_dir>/error.txt` (full traceback) and returns status
+"failed", so one bad combination cannot stop a sweep; Ctrl-C / SIGTERM (`Terminated`) are recorded the same way and
+then raised again (the executor decides: the sweep's own interrupt stops it, a signal to one worker fails its run). The SLAM work itself is done by a *run function* `fn(run: dict, run_dir: Path)`,
 by default `slam_run` (fresh `run_slam`, or `resume_slam` when the directory holds a checkpoint). Tests inject a cheap
 one by dotted path (`run_fn="inrslam.bench.testing:fake_run"` or the env var INRSLAM_BENCH_RUN_FN).
 """
@@ -101,7 +102,8 @@ def slam_run(run: dict, run_dir: Path) -> dict:
 
 
 def run_one(run: dict, out_dir: str, run_fn: str | None = None, threads: int | None = None) -> dict:
-    """Run one sweep combination into `out_dir/run['name']`; never raises.
+    """Run one sweep combination into `out_dir/run['name']`; never raises, but for Ctrl-C / SIGTERM (after recording
+    them).
 
     Returns {name, status ("complete" | "skipped" | "failed"), run_dir, error (one line or None), seconds, pid};
     `busy` True when another process holds the run's folder (`RunDir.lock`), which is then left as it is.

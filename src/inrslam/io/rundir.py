@@ -154,7 +154,7 @@ class RunDir:
         try:
             yield
         finally:
-            del _HELD[key]
+            _HELD.pop(key, None)
             held.close()
 
     # -- JSON files --------------------------------------------------------------------------------------------------

@@ -104,12 +104,14 @@ def _drive(system: SlamSystem, writer: RunWriter, resume: bool, progress: Progre
             else:
                 writer.log(system.process(i))
             saved = writer.after_frame(i)
-            if progress:
-                progress(i, system.n_frames, system.progress_info(i))
-            if held.signum is not None:
-                if not saved:
-                    writer.checkpoint()  # every finished frame is kept: a resume goes on from the next one
-                raise interrupt(held.signum)
+            try:
+                if progress and held.signum is None:
+                    progress(i, system.n_frames, system.progress_info(i))
+            finally:  # a signal held by now (also one the callback saw before it failed) saves the frame
+                if held.signum is not None:
+                    if not saved:
+                        writer.checkpoint()  # every finished frame is kept: a resume goes on from the next one
+                    raise interrupt(held.signum)
     if held.signum is not None:  # arrived as the last frame's turn ended
         writer.checkpoint()
         raise interrupt(held.signum)
