@@ -30,5 +30,16 @@ def fail_other_seeds(run: dict, run_dir: Path) -> dict:
 def hang_other_seeds(run: dict, run_dir: Path) -> dict:
     if run["seed"] != 0:
         (Path(run_dir) / "started").write_text(f"{os.getpid()}\n")
-        time.sleep(HANG_S)
+        end = time.monotonic() + HANG_S
+        while time.monotonic() < end:  # short sleeps, as a run computes: a signal the process took on another
+            time.sleep(0.05)  # thread runs its Python handler when the main thread next runs Python
     return _fake(run, run_dir)
+
+
+def deaf_to_sigterm(ready) -> None:
+    """A worker that ignores SIGTERM and sleeps (as one blocked in a long call would take it late)."""
+    import signal
+
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    ready.set()
+    time.sleep(HANG_S)

@@ -475,6 +475,29 @@ def test_a_signal_to_one_local_worker_fails_its_run_and_the_sweep_goes_on(tmp_pa
     assert "the worker was stopped by SIGTERM" in res.results[failed]["error"]
 
 
+def test_a_worker_that_does_not_stop_is_killed_after_the_grace_period(monkeypatch):
+    """Stopping a sweep SIGTERMs its workers (each saves its frame); one still running after the grace period (a
+    long call, a signal taken on another thread) is killed, so the sweep's stop is bounded."""
+    import multiprocessing as mp
+    import signal
+
+    from inrslam.bench.executors import stop_workers
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))  # tests/: fault_runs for the child
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                      os.environ.get("PYTHONPATH", "")]))
+    import fault_runs
+
+    ctx = mp.get_context("spawn")
+    ready = ctx.Event()
+    deaf = ctx.Process(target=fault_runs.deaf_to_sigterm, args=(ready,))
+    deaf.start()
+    assert ready.wait(60)
+    stop_workers([deaf], grace_s=0.5)
+    deaf.join(60)
+    assert not deaf.is_alive() and deaf.exitcode == -signal.SIGKILL  # killed: it ignored the SIGTERM
+
+
 # -- Ray: CPUs per run from the cluster's nodes ----------------------------------------------------------------------
 
 NODES = [{"Alive": True, "Resources": {"CPU": 8.0, "GPU": 1.0}}, {"Alive": True, "Resources": {"CPU": 4.0}},

@@ -14,6 +14,7 @@ from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from multiprocessing.connection import wait as wait_for_processes
 from pathlib import Path
 from typing import Iterator, Protocol
 
@@ -139,9 +140,29 @@ class LocalExecutor:
                         suspects.extend(lost)
             finally:
                 if inflight:  # stopped early: do not leave runs going in the background
-                    for p in list(getattr(pool, "_processes", {}).values()):
-                        p.terminate()
+                    stop_workers(list(getattr(pool, "_processes", {}).values()))
                 pool.shutdown(wait=True, cancel_futures=True)
+
+
+STOP_GRACE_S = 30.0  # how long a stopped worker may take to end its frame and save it (SLURM's default KillWait)
+
+
+def stop_workers(procs: list, grace_s: float = STOP_GRACE_S) -> None:
+    """SIGTERM each worker process (each ends the frame in progress and saves it), then SIGKILL those still running
+    after `grace_s` seconds: one blocked in a long call, or one whose process got the signal on a thread that does
+    not run Python, must not keep the sweep from stopping."""
+    for p in procs:
+        p.terminate()
+    running = {p.sentinel: p for p in procs}
+    deadline = time.monotonic() + grace_s
+    while running and (left := deadline - time.monotonic()) > 0:
+        for ended in wait_for_processes(list(running), timeout=left):
+            running.pop(ended)
+    for p in running.values():
+        try:
+            p.kill()
+        except OSError:  # ended meanwhile
+            pass
 
 
 def _import_ray():
