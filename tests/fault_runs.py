@@ -2,7 +2,8 @@
 a `python -m inrslam.cli bench` subprocess (PYTHONPATH includes tests/; selected with INRSLAM_BENCH_RUN_FN).
 
 Both write a fake complete run (`inrslam.bench.testing.write_fake_run`) for seed 0. For other seeds
-`fail_other_seeds` raises and `hang_other_seeds` writes its process id into `<run_dir>/started` and then sleeps until interrupted.
+`fail_other_seeds` raises and `hang_other_seeds` writes its process id into `<run_dir>/started` and then sleeps
+until interrupted. `deaf_to_sigterm` is a worker process that ignores SIGTERM.
 """
 
 from __future__ import annotations

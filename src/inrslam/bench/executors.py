@@ -109,7 +109,9 @@ class LocalExecutor:
                     while src and len(inflight) < width:
                         call = src.popleft()
                         inflight[pool.submit(run_one, threads=self.threads, **call)] = call
-                    done, _ = wait(inflight, return_when=FIRST_COMPLETED)
+                    done = set()
+                    while not done:  # in steps: a signal taken on another thread is handled by the next step
+                        done, _ = wait(inflight, timeout=WAKE_S, return_when=FIRST_COMPLETED)
                     for fut in done:
                         call = inflight.pop(fut)
                         try:
@@ -144,6 +146,8 @@ class LocalExecutor:
                 pool.shutdown(wait=True, cancel_futures=True)
 
 
+WAKE_S = 1.0  # the driver waits for results in steps of this many seconds: Python runs a signal's handler in the
+# main thread, which a signal the process took on another thread does not wake from a blocking wait
 STOP_GRACE_S = 30.0  # how long a stopped worker may take to end its frame and save it (SLURM's default KillWait)
 
 
@@ -217,7 +221,7 @@ class RayExecutor:
                               max_calls=1)(run_one)
             refs = {task.remote(threads=threads, **call): call for call in calls}
             while refs:
-                done, _ = ray.wait(list(refs), num_returns=1)
+                done, _ = ray.wait(list(refs), num_returns=1, timeout=WAKE_S)  # in steps, as the local pool
                 for ref in done:
                     call = refs.pop(ref)
                     try:
@@ -330,8 +334,9 @@ class SlurmExecutor:
                                                   f" (logs in {folder})")
                     book.remove(job.job_id)
                     yield res
-                if pending:
-                    time.sleep(poll)
+                end = time.monotonic() + poll if pending else 0.0
+                while (left := end - time.monotonic()) > 0:  # in steps, as the local pool waits
+                    time.sleep(min(left, WAKE_S))
         finally:
             _cancel(pending, book)
 

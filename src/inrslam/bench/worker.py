@@ -2,9 +2,10 @@
 
 It never raises but for an interrupt: a failing run writes `<run_dir>/error.txt` (full traceback) and returns status
 "failed", so one bad combination cannot stop a sweep; Ctrl-C / SIGTERM (`Terminated`) are recorded the same way and
-then raised again (the executor decides: the sweep's own interrupt stops it, a signal to one worker fails its run). The SLAM work itself is done by a *run function* `fn(run: dict, run_dir: Path)`,
-by default `slam_run` (fresh `run_slam`, or `resume_slam` when the directory holds a checkpoint). Tests inject a cheap
-one by dotted path (`run_fn="inrslam.bench.testing:fake_run"` or the env var INRSLAM_BENCH_RUN_FN).
+then raised again (the executor decides: the sweep's own interrupt stops it, a signal to one worker fails its run).
+The SLAM work itself is done by a *run function* `fn(run: dict, run_dir: Path)`, by default `slam_run` (fresh
+`run_slam`, or `resume_slam` when the directory holds a checkpoint). Tests inject a cheap one by dotted path
+(`run_fn="inrslam.bench.testing:fake_run"` or the env var INRSLAM_BENCH_RUN_FN).
 """
 
 from __future__ import annotations
