@@ -289,8 +289,8 @@ class SlurmExecutor:
                         cluster, rec["job_id"], rec["name"], reason)
         for rec, _ in plan.attach:  # a warning: shown by `inrslam bench` (an earlier driver was killed)
             log.warning("re-attaching to %s job %s (%s) of run %s, still in flight from an earlier sweep: waiting on "
-                     "it instead of submitting the run again", cluster, rec["job_id"], states[rec["job_id"]],
-                     rec["name"])
+                        "it instead of submitting the run again", cluster, rec["job_id"], states[rec["job_id"]],
+                        rec["name"])
         return plan
 
     def run(self, calls: list[dict]) -> Iterator[dict]:
