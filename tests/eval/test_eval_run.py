@@ -233,3 +233,25 @@ def test_a_metrics_file_that_is_not_utf8_is_a_one_line_error(run_dir):
     (rd / "metrics.json").write_bytes(b'{"frames": 1, \xff}')
     with pytest.raises(DataError, match=r"metrics\.json: invalid JSON"):
         evaluate_run(rd, FAST)
+
+
+def test_evaluation_does_not_write_beside_a_process_running_in_the_folder(run_dir):
+    """Another process holding the run folder (a resumed run finishing, a second `inrslam eval`): evaluating it
+    for writing is one RunError and metrics.json stays as it was; reading it only (`write=False`) still works."""
+    from inrslam.errors import RunError
+    from inrslam.io.lock import acquire
+    from inrslam.io.rundir import RunDir
+
+    rd = run_dir[0]
+    before = (rd / "metrics.json").read_bytes()
+    held = acquire(rd / RunDir.LOCK_FILE)  # as the other process holds it
+    try:
+        with pytest.raises(RunError, match="another inrslam process is running in this run folder"):
+            evaluate_run(rd, FAST)
+        assert (rd / "metrics.json").read_bytes() == before
+        assert evaluate_run(rd, FAST, write=False)["ate_rmse_m"] < 0.1  # computed, not the file's 999
+    finally:
+        held.close()
+    assert (rd / "metrics.json").read_bytes() == before
+    assert evaluate_run(rd, FAST)["ate_rmse_m"] < 0.1  # free again
+    assert json.loads((rd / "metrics.json").read_text())["ate_rmse_m"] < 0.1

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Mapping, Optional, Union
 
@@ -266,11 +267,18 @@ def evaluate_run(run_dir: PathLike, cfg: Any = None, write: bool = True) -> dict
         write: write the merged dict back to `metrics.json` (atomically).
     Returns:
         the merged metrics dict.
+
+    While it writes, it holds the run folder's lock (`RunDir.lock`): RunError when another process runs there.
     """
-    cfg = EvalConfig.from_any(cfg)
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise DataError(f"{run_dir}: run directory not found")
+    with RunDir(run_dir).lock() if write else nullcontext():
+        return _evaluate_run(run_dir, EvalConfig.from_any(cfg), write)
+
+
+def _evaluate_run(run_dir: Path, cfg: EvalConfig, write: bool) -> dict:
+    """`evaluate_run` of an existing run folder, with its protocol resolved."""
     notes: list[str] = []
     rd = RunDir(run_dir)
     info_path = rd.run_info
