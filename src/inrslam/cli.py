@@ -660,30 +660,30 @@ COMMANDS = {"run": _run_command, "scenes": _scenes_command, "config": _config_co
             "bench": _bench_command, "report": _report_command, "export": _export_command, "view": _view_command}
 
 
-def _interrupted_message(args) -> str:
-    """What Ctrl-C left behind and the command that continues it (one line)."""
+def _interrupted_message(args, stopped: str = "interrupted") -> str:
+    """What Ctrl-C left behind and the command that continues it (one line), starting with `stopped`."""
     from inrslam.io.rundir import RunDir
 
     if args.command == "run":
         out = args.resume or args.out
         rd = RunDir(out) if out else None
         if rd is not None and rd.has_checkpoint():
-            return f"interrupted; the run can be resumed from its last checkpoint: inrslam run --resume {out}"
+            return f"{stopped}; the run can be resumed from its last checkpoint: inrslam run --resume {out}"
         if rd is not None and rd.holds_run():
-            return (f"interrupted before the first checkpoint; start it again with: inrslam run --config "
+            return (f"{stopped} before the first checkpoint; start it again with: inrslam run --config "
                     f"{rd.config} --out {out} --overwrite")
-        return "interrupted before the run started; nothing was written"
+        return f"{stopped} before the run started; nothing was written"
     if args.command == "bench":  # the same command (executor flags included) resumes a sweep
         argv = [str(args.spec), "--out", str(args.out)] + (["--jobs", str(args.jobs)] if args.jobs != 1 else [])
         for flag, value in (("--executor", args.executor if args.executor != "local" else None),
                             ("--address", args.address), ("--partition", args.partition),
                             ("--time", args.time if args.executor == "slurm" and args.time != 60 else None)):
             argv += [flag, str(value)] if value is not None else []
-        return (f"interrupted; finished runs are kept and checkpointed ones continue: resume the sweep with "
+        return (f"{stopped}; finished runs are kept and checkpointed ones continue: resume the sweep with "
                 f"inrslam bench {shlex.join(argv)}")
     if args.command == "export":
-        return f"interrupted; nothing was exported to {args.out} (an export is written as a whole)"
-    return "interrupted"
+        return f"{stopped}; nothing was exported to {args.out} (an export is written as a whole)"
+    return stopped
 
 
 def _one_line_warnings() -> None:
@@ -727,9 +727,7 @@ def main(argv: list[str] | None = None) -> int:
               "whole or not at all)", file=sys.stderr)
         return EXIT_ERROR
     except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM / SIGHUP (`Terminated`): the same unwinding
-        message = _interrupted_message(args)
-        if isinstance(e, Terminated):  # "interrupted; ..." -> "terminated by SIGTERM; ..."
-            message = f"terminated by {e}" + message[len("interrupted"):]
+        message = _interrupted_message(args, f"terminated by {e}" if isinstance(e, Terminated) else "interrupted")
         try:
             print(f"inrslam {args.command}: {message}", file=sys.stderr)
         except OSError:  # a closed terminal (SIGHUP) takes no more output
