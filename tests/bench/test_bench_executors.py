@@ -452,9 +452,7 @@ def test_a_signal_to_one_local_worker_fails_its_run_and_the_sweep_goes_on(tmp_pa
     import signal
     import threading
 
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))  # tests/: the fault run functions
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(Path(__file__).resolve().parents[1]),
-                                                      os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("PYTHONPATH", PYTHONPATH)  # the spawned workers import fault_runs from tests/
     out = tmp_path / "o"
     spec_ = {**spec("dense", renders=("direct",)), "seeds": [0, 1]}
     started = out / "room__dense__direct__quick__s1" / "started"
@@ -483,9 +481,7 @@ def test_a_worker_that_does_not_stop_is_killed_after_the_grace_period(monkeypatc
 
     from inrslam.bench.executors import stop_workers
 
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))  # tests/: fault_runs for the child
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(Path(__file__).resolve().parents[1]),
-                                                      os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("PYTHONPATH", PYTHONPATH)  # the spawned workers import fault_runs from tests/
     import fault_runs
 
     ctx = mp.get_context("spawn")

@@ -343,11 +343,11 @@ class SlurmExecutor:
 
 def _cancel(pending: list, book: InflightBook) -> None:
     """Cancel the jobs not finished (best effort) and forget the records of those cancelled."""
+    cancelled = []
     for job, _ in pending:
         try:
             job.cancel(check=False)
         except Exception:  # noqa: BLE001 - best effort
             continue
-        book.jobs.pop(str(job.job_id), None)
-    if pending:
-        book.save()
+        cancelled.append(job.job_id)
+    book.remove(*cancelled)

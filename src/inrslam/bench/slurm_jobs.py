@@ -30,13 +30,17 @@ ENDED_STATES = frozenset({"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_F
                           "DEADLINE", "REVOKED", "FINISHED", "UNKNOWN"})  # SLURM's final states; FINISHED: local jobs
 
 
+def _state_word(state: str) -> str:
+    """The state itself of a scheduler's state text ('CANCELLED by 0' -> 'CANCELLED'; empty -> 'UNKNOWN')."""
+    return (state.split() or ["UNKNOWN"])[0].upper()
+
+
 def settled(state: str | None) -> str | None:
     """`state` where it decides (live as submitit waits on it, or ended); None for a job alive in a state submitit
     would not wait on (CONFIGURING, SUSPENDED, STOPPED, ...): its run cannot be re-attached, nor called finished."""
     if state is None:
         return None
-    first = (state.split() or ["UNKNOWN"])[0].upper()
-    return state if first in LIVE_STATES or first in ENDED_STATES else None
+    return state if _state_word(state) in LIVE_STATES | ENDED_STATES else None
 
 
 def run_key(out_dir: str, name: str) -> str:
@@ -52,7 +56,7 @@ def job_record(job_id: str, cluster: str, call: dict) -> dict:
 
 def is_live(state: str) -> bool:
     """Whether a scheduler state ('RUNNING', 'CANCELLED by 0', ...) means the job may still write its run."""
-    return (state.split() or ["UNKNOWN"])[0].upper() in LIVE_STATES
+    return _state_word(state) in LIVE_STATES
 
 
 @dataclass
@@ -110,7 +114,7 @@ def sacct_states(job_ids: list[str]) -> tuple[dict[str, str | None], str | None]
     from submitit.slurm.slurm import SlurmInfoWatcher
 
     cmd = ["sacct", "-o", "JobID,State", "--parsable2"]
-    for main in sorted({j.split("_")[0] for j in job_ids}):
+    for main in _array_ids(job_ids):
         cmd += ["-j", main]
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=120).stdout
@@ -128,20 +132,24 @@ def sacct_states(job_ids: list[str]) -> tuple[dict[str, str | None], str | None]
     return states, why
 
 
+def _array_ids(job_ids: list[str]) -> list[str]:
+    """The jobs (arrays) of job ids ('123_4' -> '123'), sorted and each once: what sacct and squeue are asked for."""
+    return sorted({j.split("_")[0] for j in job_ids})
+
+
 def squeue_states(job_ids: list[str]) -> dict[str, str] | None:
     """States of those of `job_ids` still in SLURM's queue, by one `squeue` call (a job it does not list has
     ended); None when squeue cannot be run. Array ranges ('123_[5-7]') are expanded as sacct's are."""
     from submitit.slurm.slurm import SlurmInfoWatcher
 
-    cmd = ["squeue", "-h", "-o", "%i|%T", "-j", ",".join(sorted({j.split("_")[0] for j in job_ids}))]
+    cmd = ["squeue", "-h", "-o", "%i|%T", "-j", ",".join(_array_ids(job_ids))]
     try:
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     except (OSError, subprocess.SubprocessError):
         return None
     if done.returncode != 0:  # one job id that left the queue's memory is an error; several are not
         return {} if "invalid job id" in done.stderr.lower() else None
-    out = done.stdout
-    info = SlurmInfoWatcher().read_info("JobID|State\n" + out)
+    info = SlurmInfoWatcher().read_info("JobID|State\n" + done.stdout)
     return {j: info[j]["State"] for j in job_ids if j in info and info[j].get("State")}
 
 
@@ -204,8 +212,9 @@ class InflightBook:
     def add(self, job_id: str, call: dict) -> None:
         self.jobs[str(job_id)] = job_record(job_id, self.cluster, call)
 
-    def remove(self, job_id: str) -> None:
-        if self.jobs.pop(str(job_id), None) is not None:
+    def remove(self, *job_ids: str) -> None:
+        """Forget these jobs (saved once, if any was recorded)."""
+        if [self.jobs.pop(str(j)) for j in job_ids if str(j) in self.jobs]:
             self.save()
 
     def save(self) -> None:
