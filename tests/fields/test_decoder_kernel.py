@@ -13,10 +13,12 @@ from inrslam.fields.kernels.mlp import (
     BLOCK,
     Mlp2Fn,
     Mlp2SplitFn,
+    backward_block_rows,
     block_rows,
     mlp2,
     mlp2_pair,
     mlp2_torch,
+    padded_width,
 )
 from inrslam.fields.kernels.threads import thread_scope
 from inrslam.fields.models import build_field
@@ -60,6 +62,44 @@ def test_only_requested_gradients(need):
             torch.testing.assert_close(gf, gr, rtol=1e-4, atol=1e-4)
 
 
+def test_padded_width():
+    """The backward's input-side products run 8 wide for inputs 5-7 wide, else as wide as the input."""
+    assert [padded_width(i) for i in (1, 3, 4, 5, 6, 7, 8, 9, 35)] == [1, 3, 4, 8, 8, 8, 8, 9, 35]
+
+
+@pytest.mark.parametrize("n_in", [3, 5, 6, 7, 9, 35])
+def test_padded_products_give_the_reference_gradients_float64(n_in):
+    """Input widths that are padded in the backward (5, 6, 7) and that are not (3, 9, 35): every gradient equals
+    the reference's to float64 rounding, over several blocks (the zero padding adds nothing and is dropped)."""
+    x, w1, w2, cot = _inputs(2 * BLOCK + 37, n_in=n_in, n_out=4, dtype=torch.float64)
+    out_r, grads_r = _grads("torch", x, w1, w2, cot)
+    out_f, grads_f = _grads("numba", x, w1, w2, cot)
+    torch.testing.assert_close(out_f, out_r, rtol=1e-12, atol=1e-12)
+    for gf, gr in zip(grads_f, grads_r):
+        assert gf.shape == gr.shape
+        torch.testing.assert_close(gf, gr, rtol=1e-10, atol=1e-10 * max(1.0, float(gr.abs().max())))
+
+
+def test_padding_off_gives_the_same_gradients(monkeypatch):
+    """`PAD_NARROW` off (the products as wide as the input) and on agree to float64 rounding, tracking's input-only
+    backward and mapping's with the weights, for the pair (7 wide: padded when on)."""
+    import inrslam.fields.kernels.mlp as mlp
+
+    x, w1, w2, cot = _inputs(2 * BLOCK + 37, n_in=7, hidden=64, n_out=4, dtype=torch.float64)
+    for need in ((True, False, False), (True, True, True)):
+        grads = {}
+        for on in (False, True):
+            monkeypatch.setattr(mlp, "PAD_NARROW", on)
+            leaves = [t.clone().requires_grad_(r) for t, r in zip((x, w1, w2), need)]
+            ya, yb = Mlp2SplitFn.apply(leaves[0][:, :4], leaves[0][:, 4:], leaves[1], leaves[2], 1)
+            torch.autograd.backward((ya, yb), (cot[:, :1], cot[:, 1:]))
+            grads[on] = [t.grad for t in leaves]
+        for a, b in zip(grads[False], grads[True]):
+            assert (a is None) == (b is None)
+            if a is not None:
+                torch.testing.assert_close(b, a, rtol=1e-12, atol=1e-12)
+
+
 def test_gradcheck_float64():
     """Input gradient on a few samples; weight gradients over several blocks (their per-block partial sums)."""
     for n, need_x in ((6, True), (2 * BLOCK + 5, False)):
@@ -86,7 +126,7 @@ def test_analytic_case():
     assert w1.grad.tolist() == [[2.0, -4.0], [0.0, 0.0], [0.0, 0.0]]
 
 
-@pytest.mark.parametrize("n_in, hidden", [(7, 32), (35, 64)])
+@pytest.mark.parametrize("n_in, hidden", [(7, 32), (7, 64), (35, 64)])
 def test_weight_gradient_independent_of_threads(n_in, hidden):
     """Any thread count gives the same bits, also for a wide decoder (a 16-level hash grid's 35 inputs, 64 hidden
     units: 2240 weights, so blocks of 117 samples keep each product at OpenBLAS's single-thread size)."""
@@ -111,6 +151,9 @@ def test_block_rows_keeps_blas_single_threaded():
     assert block_rows(w(7, 32), w(32, 32), w(32, 1)) == 256
     assert block_rows(w(35, 64), w(64, 1)) == 117 and 117 * 35 * 64 <= BLAS_SINGLE_THREAD_MNK < 118 * 35 * 64
     assert block_rows(w(4000, 2500)) == 1 and block_rows(w(0, 5)) == BLOCK
+    # the backward's blocks count the padded width: the pair 7 -> 64 -> 4 runs its input side 8 wide
+    assert backward_block_rows(7, 64, 4) == 512 and 512 * 8 * 64 <= BLAS_SINGLE_THREAD_MNK < 513 * 8 * 64
+    assert backward_block_rows(35, 64, 1) == block_rows(w(35, 64), w(64, 1)) == 117  # unpadded width: as before
 
 
 def test_auto_dispatch():

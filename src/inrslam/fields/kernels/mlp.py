@@ -7,9 +7,9 @@ output, and in the backward the input and weight gradients) and the ReLU and its
 block's (block, 32) hidden array stays in cache; the backward recomputes it instead of storing it. The reference is
 ``mlp2_torch``; ``mlp2`` dispatches. Results do not depend on the thread count: every block is one set of BLAS
 calls small enough that OpenBLAS runs each on one thread (M·N·K ≤ 262 144: the block size follows from the layer
-shapes, ``block_rows``) and the weight gradients' per-block partial sums are added in block order. (An earlier
-per-sample kernel, the hidden vector in a scratch array, ran at 0.37x this speed.) The plane decoders' kernel, three
-layers with biases, is ``fields.kernels.mlp3``.
+shapes, ``block_rows``; the backward's from its padded shapes, ``backward_block_rows``) and the weight gradients'
+per-block partial sums are added in block order. (An earlier per-sample kernel, the hidden vector in a scratch array,
+ran at 0.37x this speed.) The plane decoders' kernel, three layers with biases, is ``fields.kernels.mlp3``.
 """
 
 from __future__ import annotations
@@ -75,25 +75,59 @@ def _block_forward(xb, w1t, w2t):  # pragma: no cover - numba
     return np.dot(h, w2t)
 
 
+#: Whether the backward's input-side products run 8 columns wide for inputs 5-7 wide (`padded_width`); False = as
+#: wide as the input (`benchmarks/bench_decoder_padding.py` times both in one process).
+PAD_NARROW = True
+
+
+def padded_width(n_in: int) -> int:
+    """Columns of the input-side products in the backward: 8 for an input 5-7 wide (with `PAD_NARROW`), else n_in.
+    OpenBLAS (its Haswell kernels, as in the NumPy / SciPy wheels) runs a (m, H) x (H, 7) product and a (7, m) x
+    (m, H) one at about 0.55-0.6x the speed of the same 8 columns wide; 7 is the paper grid decoders' input (4
+    features and 3 coordinates). Measured per block (one thread, input and weight gradients): widths 5, 6, 7 padded
+    to 8 gain 1.1-1.3x; 3 -> 4 or 8 is even, 9 -> 12 or 16 and 12 -> 16 lose, 19 -> 20 and 35 -> 36 gain < 8 %."""
+    return 8 if PAD_NARROW and 4 < int(n_in) < 8 else int(n_in)
+
+
 @njit(inline="always", cache=True, fastmath=FASTMATH)
-def _block_backward(xb, gyb, w1t, w1, w2, tiny, need_x, need_w):  # pragma: no cover - numba
+def _block_backward(xb, gyb, w1t, w1p, w2, tiny, need_x, need_w):  # pragma: no cover - numba
     """One block's gradients of relu(xb w1t) w2^T for the output gradient gyb (m, O), flushed in place (subnormal
     values count as zero): (gxb (m, I) flushed, or a (0, I) array unless need_x; gw1t (I, H); gw2 (O, H); the last
-    two (0, 0) unless need_w)."""
+    two (0, 0) unless need_w). w1p (H, P) is w1 with P - I zero columns (`padded_width`): the input-side products
+    run P wide and their padding is dropped (it would only ever hold zeros)."""
+    n_in = xb.shape[1]
     flush_inplace(gyb, tiny)
     h = np.dot(xb, w1t)  # (m, H) pre-activation
     gh = np.dot(gyb, w2)  # (m, H) gradient of the activation
     relu_mask_inplace(h, gh)  # h: the activation, gh: the pre-activation's gradient
-    gxb = np.empty((0, xb.shape[1]), xb.dtype)
+    gxb = np.empty((0, n_in), xb.dtype)
     gw1t = np.empty((0, 0), xb.dtype)
     gw2 = np.empty((0, 0), xb.dtype)
     if need_x:
-        gxb = np.dot(gh, w1)
-        flush_inplace(gxb, tiny)
+        gxp = np.dot(gh, w1p)  # (m, P)
+        flush_inplace(gxp, tiny)
+        gxb = gxp[:, :n_in]
     if need_w:
-        gw1t = np.dot(np.ascontiguousarray(xb.T), gh)
+        xt = np.zeros((w1p.shape[1], xb.shape[0]), xb.dtype)  # (P, m): x^T and P - I rows of zeros
+        xt[:n_in] = xb.T
+        gw1t = np.ascontiguousarray(np.dot(xt, gh)[:n_in])
         gw2 = np.dot(np.ascontiguousarray(gyb.T), h)
     return gxb, gw1t, gw2
+
+
+def padded_w1(w1t: np.ndarray) -> np.ndarray:
+    """(H, P) C-ordered: w1 = w1t^T (w1t (I, H)) with P - I zero columns (`padded_width`)."""
+    n_in, n_hid = w1t.shape
+    w1p = np.zeros((n_hid, padded_width(n_in)), w1t.dtype)
+    w1p[:, :n_in] = w1t.T
+    return w1p
+
+
+def backward_block_rows(n_in: int, n_hid: int, n_out: int) -> int:
+    """Samples per block of the backward: `block_rows` of its widest product, the padded input side included, so
+    that every product stays at OpenBLAS's single-thread size (7 -> 64 -> 4: 8 x 64 wide, 512 samples; the
+    forward's blocks follow the unpadded 7 x 64: 585)."""
+    return block_rows(np.empty((padded_width(n_in), n_hid)), np.empty((n_out, n_hid)))
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -131,16 +165,16 @@ def _forward_split(xa, xb, w1t, w2, block, ya, yb):  # pragma: no cover - numba
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def _backward(x, w1t, w2, gy, block, need_x, need_w, tiny, gx, gw1t_parts, gw2_parts):  # pragma: no cover - numba
+def _backward(x, w1t, w1p, w2, gy, block, need_x, need_w, tiny, gx, gw1t_parts, gw2_parts):  # pragma: no cover
     """Gradients of out = relu(x w1t) w2^T for the output gradient gy (N, O): gx (N, I) when need_x, and per-block
     weight gradients gw1t_parts (B, I, H), gw2_parts (B, O, H) when need_w (summed over blocks by the caller).
-    Subnormal values of gy (|v| < tiny) count as zero, and those of gx are set to zero (``subnormal``)."""
+    w1p: `padded_w1(w1t)` (C-ordered: BLAS is faster on it here, 1.1-1.35x per call, and padded). Subnormal values
+    of gy (|v| < tiny) count as zero, and those of gx are set to zero (``subnormal``)."""
     n_pts = x.shape[0]
-    w1 = np.ascontiguousarray(w1t.T)  # (H, I): BLAS is faster on C-ordered operands here (1.1-1.35x per call)
     for b in prange((n_pts + block - 1) // block):
         n0 = b * block
         n1 = min(n_pts, n0 + block)
-        gxb, gw1t, gw2 = _block_backward(x[n0:n1], gy[n0:n1].copy(), w1t, w1, w2, tiny, need_x, need_w)
+        gxb, gw1t, gw2 = _block_backward(x[n0:n1], gy[n0:n1].copy(), w1t, w1p, w2, tiny, need_x, need_w)
         if need_x:
             gx[n0:n1] = gxb
         if need_w:
@@ -149,17 +183,16 @@ def _backward(x, w1t, w2, gy, block, need_x, need_w, tiny, gx, gw1t_parts, gw2_p
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def _backward_split(xa, xb, w1t, w2, gya, gyb, block, need_xa, need_xb, need_w, tiny, gxa, gxb, gw1t_parts,
+def _backward_split(xa, xb, w1t, w1p, w2, gya, gyb, block, need_xa, need_xb, need_w, tiny, gxa, gxb, gw1t_parts,
                     gw2_parts):  # pragma: no cover - numba
     """`_backward` of the input [xa, xb] and the output gradient [gya, gyb], both assembled per block in cache, the
     input gradient split into gxa (N, Ia) when need_xa and gxb (N, Ib) when need_xb: the same values."""
     n_pts, ia = xa.shape[0], xa.shape[1]
-    w1 = np.ascontiguousarray(w1t.T)
     need_x = need_xa or need_xb
     for b in prange((n_pts + block - 1) // block):
         n0 = b * block
         n1 = min(n_pts, n0 + block)
-        gx, gw1t, gw2 = _block_backward(_joined(xa, xb, n0, n1), _joined(gya, gyb, n0, n1), w1t, w1, w2, tiny,
+        gx, gw1t, gw2 = _block_backward(_joined(xa, xb, n0, n1), _joined(gya, gyb, n0, n1), w1t, w1p, w2, tiny,
                                         need_x, need_w)
         if need_xa:
             gxa[n0:n1] = gx[:, :ia]
@@ -213,12 +246,13 @@ class Mlp2Fn(torch.autograd.Function):
         n, n_in = xc.shape
         n_hid, n_out = w1t.shape[1], w2c.shape[0]
         dtype = w1t.numpy().dtype
-        block = block_rows(w1t, w2c)
+        w1p = padded_w1(w1t.numpy())
+        block = backward_block_rows(n_in, n_hid, n_out)
         n_blocks = (n + block - 1) // block if need_w else 0
         gx = np.empty((n if need_x else 0, n_in), dtype=dtype)
         gw1t = np.zeros((n_blocks, n_in, n_hid), dtype=dtype)
         gw2 = np.zeros((n_blocks, n_out, n_hid), dtype=dtype)
-        _backward(xc.numpy(), w1t.numpy(), w2c.numpy(), gy.detach().to(w1t.dtype).contiguous().numpy(), block,
+        _backward(xc.numpy(), w1t.numpy(), w1p, w2c.numpy(), gy.detach().to(w1t.dtype).contiguous().numpy(), block,
                   need_x, need_w, tiny_of(dtype), gx, gw1t, gw2)
         gx_t = torch.from_numpy(gx) if need_x else None
         gw1_t = torch.from_numpy(gw1t.sum(axis=0)).t().contiguous() if need_w1 else None  # blocks summed in
@@ -270,15 +304,16 @@ class Mlp2SplitFn(torch.autograd.Function):
         n = xac.shape[0]
         n_hid, n_out = w1t.shape[1], w2c.shape[0]
         dtype = w1t.numpy().dtype
-        block = block_rows(w1t, w2c)
+        w1p = padded_w1(w1t.numpy())
+        block = backward_block_rows(w1t.shape[0], n_hid, n_out)
         n_blocks = (n + block - 1) // block if need_w else 0
         gxa = np.empty((n if need_xa else 0, xac.shape[1]), dtype=dtype)
         gxb = np.empty((n if need_xb else 0, xbc.shape[1]), dtype=dtype)
         gw1t = np.zeros((n_blocks, w1t.shape[0], n_hid), dtype=dtype)
         gw2 = np.zeros((n_blocks, n_out, n_hid), dtype=dtype)
         gya_np, gyb_np = (g.detach().to(w1t.dtype).contiguous().numpy() for g in (gya, gyb))
-        _backward_split(xac.numpy(), xbc.numpy(), w1t.numpy(), w2c.numpy(), gya_np, gyb_np, block, need_xa, need_xb,
-                        need_w, tiny_of(dtype), gxa, gxb, gw1t, gw2)
+        _backward_split(xac.numpy(), xbc.numpy(), w1t.numpy(), w1p, w2c.numpy(), gya_np, gyb_np,
+                        block, need_xa, need_xb, need_w, tiny_of(dtype), gxa, gxb, gw1t, gw2)
         gw1_t = torch.from_numpy(gw1t.sum(axis=0)).t().contiguous() if need_w1 else None  # as in `Mlp2Fn`
         gw2_t = torch.from_numpy(gw2.sum(axis=0)) if need_w2 else None
         return (torch.from_numpy(gxa) if need_xa else None, torch.from_numpy(gxb) if need_xb else None, gw1_t, gw2_t,
