@@ -30,17 +30,15 @@ import numpy as np
 def pair_residual(da: np.ndarray, db: np.ndarray, rel: np.ndarray, K) -> np.ndarray:
     """(H, W) relative difference (d_b - z) / d_b where a's depth (H, W) m, moved by rel (4, 4) a-camera -> b-camera,
     lands nearest in b; NaN elsewhere or where |d_b - z| >= 5 cm."""
+    from inrslam.geometry.pinhole import backproject_np, project_np
+
     H, W = db.shape
-    v, u = np.nonzero(da > 0)
-    z = da[v, u]
-    p = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], 1) @ rel[:3, :3].T + rel[:3, 3]
-    front = p[:, 2] > 1e-6
-    p = p[front]
-    ub = np.round(p[:, 0] / p[:, 2] * K.fx + K.cx).astype(int)
-    vb = np.round(p[:, 1] / p[:, 2] * K.fy + K.cy).astype(int)
+    p = backproject_np(da, K.fx, K.fy, K.cx, K.cy) @ rel[:3, :3].T + rel[:3, 3]
+    u, v, z = project_np(p[p[:, 2] > 1e-6], K.fx, K.fy, K.cx, K.cy)
+    ub, vb = np.round(u).astype(int), np.round(v).astype(int)
     inside = (ub >= 0) & (ub < W) & (vb >= 0) & (vb < H)
     zbuf = np.full((H, W), np.inf)
-    np.minimum.at(zbuf, (vb[inside], ub[inside]), p[inside, 2])
+    np.minimum.at(zbuf, (vb[inside], ub[inside]), z[inside])
     with np.errstate(invalid="ignore", divide="ignore"):
         r = np.where(db > 0, db - zbuf, np.nan)
         r = np.where(np.abs(r) < 0.05, r / db, np.nan)

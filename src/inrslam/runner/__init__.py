@@ -71,12 +71,10 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
     rd = RunDir(run_dir)
     if not rd.holds_run():
         raise ConfigError(f"{run_dir}: not a run directory (no config.yaml)")
-    if rd.is_complete():  # checked before the lock too: a finished run may sit in a folder this user cannot write
-        stage(log, f"{run_dir}: the run is already complete; nothing to resume (--overwrite runs it again)")
+    if _left_complete(rd):  # checked before the lock too: a finished run may sit in a folder this user cannot write
         return run_dir
     with rd.lock():  # before anything is read: the process holding it may still be writing
-        if rd.is_complete():  # nothing to do (resuming it would mark it running again and redo its evaluation)
-            stage(log, f"{run_dir}: the run is already complete; nothing to resume (--overwrite runs it again)")
+        if _left_complete(rd):  # nothing to do (resuming it would mark it running again and redo its evaluation)
             return run_dir
         cfg = load_config(rd.config, preset=None, check_variants=False)  # checked when the run was made
         stage(log, f"opening the dataset {cfg.data.path}")
@@ -87,6 +85,14 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
             stage(log, f"building the map and loading the checkpoint {rd.checkpoint}")
             system = system_class(cfg)(cfg, dataset)
             return _drive(system, RunWriter(system, rd, threads), resume=True, progress=progress)
+
+
+def _left_complete(rd: RunDir) -> bool:
+    """Whether the run in `rd` is complete (said on the status line): `resume_slam` then leaves it as it is."""
+    if not rd.is_complete():
+        return False
+    stage(log, f"{rd.root}: the run is already complete; nothing to resume (--overwrite runs it again)")
+    return True
 
 
 def _drive(system: SlamSystem, writer: RunWriter, resume: bool, progress: Progress | None) -> Path:

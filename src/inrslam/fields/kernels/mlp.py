@@ -110,7 +110,7 @@ def _block_backward(xb, gyb, w1t, w1p, w2, tiny, need_x, need_w):  # pragma: no 
     if need_w:
         xt = np.zeros((w1p.shape[1], xb.shape[0]), xb.dtype)  # (P, m): x^T and P - I rows of zeros
         xt[:n_in] = xb.T
-        gw1t = np.ascontiguousarray(np.dot(xt, gh)[:n_in])
+        gw1t = np.dot(xt, gh)[:n_in]
         gw2 = np.dot(np.ascontiguousarray(gyb.T), h)
     return gxb, gw1t, gw2
 
