@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+from inrslam.machine import cpu_line
 
 # both map the same depth: `ehe` maps depth noisier than 2 mm at 1 m after the bilateral filter, so the paper system
 # is given the same filtered depth (its own loop otherwise unchanged)
@@ -69,7 +69,7 @@ def main() -> None:
     import torch
 
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench_ehe_"))
-    print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
+    print(f"# machine: {cpu_line()}, torch "
           f"{torch.__version__}; data {args.data}, {args.frames} frames, {args.threads or 'all'} thread(s); "
           f"runs in {root}")
     rows = {}

@@ -10,10 +10,10 @@ numba pass). Interleaved repetitions in one run; prints medians and their ratio 
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import time
+
+from inrslam.machine import cpu_line
 
 
 def main() -> None:
@@ -28,7 +28,7 @@ def main() -> None:
 
     if args.threads:
         set_threads(args.threads)
-    print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
+    print(f"# machine: {cpu_line()}, torch {torch.__version__}"
           f", threads {torch.get_num_threads()}; {args.samples} samples per ray, float32, median of {args.reps}")
     for R in (1024, 2048):
         bench_batch(R, args.samples, args.reps)

@@ -13,9 +13,9 @@ every frame, mapping every 5th). Initialisation (same in every preset) is exclud
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
+
+from inrslam.machine import cpu_line
 
 PRESETS = ["paper", "accurate", "gicp"]
 
@@ -52,7 +52,7 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
-    print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
+    print(f"# machine: {cpu_line()}, torch "
           f"{torch.__version__}; data {args.data}, {args.frames} frames")
     print(f"{'preset':<9} {'F':<9} {'G':<8} {'track ms/frame':>15} {'map ms/call':>12} {'s/frame':>8} {'init s':>7}")
     for enc in args.encodings:
@@ -64,8 +64,8 @@ def main() -> None:
         if "paper" in rows:
             for preset, r in rows.items():
                 if preset != "paper":
-                    print(f"{enc:<9} {preset}/paper per-frame time: {r['per_frame_s'] / rows['paper']['per_frame_s']:.2f}x",
-                          flush=True)
+                    ratio = r["per_frame_s"] / rows["paper"]["per_frame_s"]
+                    print(f"{enc:<9} {preset}/paper per-frame time: {ratio:.2f}x", flush=True)
 
 
 if __name__ == "__main__":

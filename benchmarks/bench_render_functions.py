@@ -15,11 +15,10 @@ the run stays minutes: the ratio is that of the full init).
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
 
 import inrslam  # noqa: F401  (first: sets the OpenMP wait policy before torch loads its runtime)
+from inrslam.machine import cpu_line
 
 
 def run_one(preset: str, encoding: str, render: str, frames: int, init_iters: int, data: str, threads: int
@@ -61,7 +60,7 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
-    print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
+    print(f"# machine: {cpu_line()}, torch "
           f"{torch.__version__}; {args.preset}, {args.data}, {args.frames} frames, init {args.init_iters} iters, "
           f"threads {args.threads or 'all'}, OpenMP wait {inrslam.omp_env.wait_policy()['policy']}")
     for enc in args.encodings:  # warm-up of every F x G: numba compiles (or loads) each F's kernels on first use,

@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import time
 from collections.abc import Sequence
 
 from iteration_setup import paper_config
+
+from inrslam.machine import cpu_line
 
 ENCODINGS = ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+tri"]
 
@@ -67,7 +67,7 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
-    print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
+    print(f"# machine: {cpu_line()}, torch "
           f"{torch.__version__}, threads {torch.get_num_threads()}; data {args.data}, G={args.render}, paper preset")
     print(f"{'F':<10} {'lookups':<7} {'decoder':<7} {'losses':<7} {'track ms/frame':>15} {'map ms/call':>12} "
           f"{'s/frame':>8} {'init ms/it':>11}")

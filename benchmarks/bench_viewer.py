@@ -14,11 +14,11 @@ that pays the JIT compilation, and the ratio is of the median loop times, per pr
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import threading
 import time
+
+from inrslam.machine import cpu_line
 
 
 def make_system(preset: str, frames: int, data: str):
@@ -98,7 +98,7 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
-    print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
+    print(f"# machine: {cpu_line()}, torch "
           f"{torch.__version__}; {args.data}, {args.frames} frames, mesh every {args.mesh_every}", flush=True)
     ratios = {}
     for preset in args.presets:

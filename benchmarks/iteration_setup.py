@@ -7,13 +7,13 @@ variants can be timed interleaved in one process on the same work; the benchmark
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
+
+from inrslam.machine import cpu_line
 
 #: Overrides that turn on every fused CPU kernel besides the lookups (which `paper` runs fused already).
 FUSED = ["field.decoder_kernel=numba", "loss.kernel=numba", "render.kernel=numba"]
@@ -88,7 +88,7 @@ def machine_line(what: str) -> str:
     """'# machine: ..., cores, torch ..., threads ...; <what>' for a benchmark's first line."""
     import torch
 
-    return (f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
+    return (f"# machine: {cpu_line()}, torch "
             f"{torch.__version__}, threads {torch.get_num_threads()}; {what}")
 
 

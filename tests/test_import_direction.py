@@ -12,7 +12,7 @@ SRC = Path(inrslam.__file__).parent
 # lowest first; packages in one layer are siblings and may not import each other
 LAYERS = [
     {"errors", "omp_env", "malloc_env", "interrupts", "status", "lazy"},
-    {"registry", "io"},
+    {"registry", "io", "machine"},
     {"geometry"},
     {"data"},
     {"scenes"},

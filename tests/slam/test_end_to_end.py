@@ -94,6 +94,7 @@ def test_run_holds_its_own_thread_count_whatever_the_process_left_set(run_a, tmp
     assert (tmp_path / "b" / "trajectory.txt").read_text() == (run_a / "trajectory.txt").read_text()
     info = json.loads((tmp_path / "b" / "run_info.json").read_text())
     assert info["threads"] == resolve_threads(0)
+    assert info["machine"]["cores"] == os.cpu_count() and info["machine"]["cpu"]  # the machine it ran on
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the OpenMP ballast acts on Linux's libgomp")

@@ -29,6 +29,7 @@ from inrslam.errors import InrslamWarning, RunError
 from inrslam.io.atomic import append_jsonl, atomic_path, write_json
 from inrslam.io.rundir import RunDir
 from inrslam.io.trajectory import write_tum
+from inrslam.machine import machine
 from inrslam.malloc_env import malloc_state
 from inrslam.omp_env import wait_policy
 from inrslam.runner.checkpoint import IDENTITY, load_checkpoint, save_checkpoint
@@ -197,8 +198,8 @@ class RunWriter:
             self.tb = None
 
     def write_run_info(self, status: str) -> None:
-        """run_info.json: status, dataset (absolute paths), intrinsics, bounds, keyframes, versions, device, threads and
-        their OpenMP wait policy."""
+        """run_info.json: status, dataset (absolute paths), intrinsics, bounds, keyframes, versions, device, the
+        machine (CPU model, cores, cache, memory: `inrslam.machine`), threads and their OpenMP wait policy."""
         sysm, ds = self.system, self.system.dataset
         st = sysm.state
         intr = ds.intrinsics
@@ -220,6 +221,7 @@ class RunWriter:
             "versions": {"inrslam": inrslam.__version__, "torch": torch.__version__, "numpy": np.__version__,
                          "python": platform.python_version()},
             "device": str(sysm.device),
+            "machine": machine(),
             "threads": self.threads if self.threads is not None else torch.get_num_threads(),
             "omp_wait_policy": wait_policy(),
             "malloc": malloc_state(),
