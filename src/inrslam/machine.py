@@ -66,7 +66,7 @@ def machine() -> dict:
 
 
 def cpu_line() -> str:
-    """'<CPU model>, <n> cores' (usable cores named when fewer), for a benchmark's '# machine:' line."""
+    """'<CPU model>, <n> cores[ (<k> usable)][, last-level cache <size>]', for a benchmark's '# machine:' line."""
     n, usable = os.cpu_count() or 1, len(cpu_set())
     cores = f"{n} cores" if usable >= n else f"{n} cores ({usable} usable)"
     cache = last_level_cache()
