@@ -11,7 +11,7 @@ import pytest
 
 from inrslam.bench.leaderboard import COLUMN_BY_KEY, aggregate, collect_runs, to_csv, to_latex, to_markdown
 from inrslam.bench.plots import ate_over_frames
-from inrslam.bench.report import build_report
+from inrslam.bench.report import build_report, machines_note
 from inrslam.bench.testing import write_fake_run
 
 
@@ -249,3 +249,37 @@ def test_a_mean_leaving_out_runs_is_shown_with_its_count_and_never_best(tmp_path
     report = build_report(root, tmp_path / "report")
     assert "0.50 (1/2)" in (report / "leaderboard.md").read_text()
     assert "(1/2)" not in (report / "leaderboard_easy.md").read_text().split("Sparse (hash)")[1].splitlines()[0]
+
+
+def test_report_names_each_runs_machine_and_warns_when_times_mix_machines(tmp_path):
+    """runs.csv carries each run's CPU model and thread count (run_info.json); the page says so when the complete
+    runs' Track / Map times come from more than one machine or thread count, and stays quiet when they do not."""
+    root = tmp_path / "r"
+    epyc, xeon = {"cpu": "AMD EPYC", "cores": 2}, {"cpu": "Intel Xeon Gold 5218R", "cores": 64}
+    write_fake_run(root / "a", "dense", "density", "room", 0, machine=epyc, threads=2)
+    write_fake_run(root / "b", "hash", "density", "room", 0, machine=epyc, threads=2)
+    write_fake_run(root / "c", "hash", "density", "room", 1, machine=xeon, threads=2, status="running")
+    records = collect_runs(root)
+    assert [(r.cpu, r.threads) for r in records] == [("AMD EPYC", 2), ("AMD EPYC", 2), ("Intel Xeon Gold 5218R", 2)]
+    assert machines_note(records) == ""  # the Xeon run is not complete: its times are in no table
+    out = build_report(root)
+    assert "Times mix machines" not in (out / "index.html").read_text()
+    table = {r["name"]: r for r in csv.DictReader(open(out / "runs.csv"))}
+    assert (table["c"]["cpu"], table["c"]["threads"]) == ("Intel Xeon Gold 5218R", "2")
+
+    write_fake_run(root / "c", "hash", "density", "room", 1, machine=xeon, threads=2)  # now complete
+    write_fake_run(root / "d", "mlp", "density", "room", 0, machine=epyc, threads=1)
+    note = machines_note(collect_runs(root))
+    assert note.startswith("Times mix machines or thread counts (AMD EPYC, 2 thread(s): 2 run(s); ")
+    assert "AMD EPYC, 1 thread(s): 1 run(s)" in note and "Intel Xeon Gold 5218R, 2 thread(s): 1 run(s)" in note
+    assert "Times mix machines or thread counts" in (build_report(root) / "index.html").read_text()
+
+
+def test_runs_without_a_readable_machine_record_read_as_not_recorded(tmp_path):
+    """Runs written before run_info.json recorded the machine, or with a damaged record, give '' / None."""
+    root = tmp_path / "r"
+    write_fake_run(root / "old", "dense", "density")
+    write_fake_run(root / "odd", "hash", "density", machine={"cpu": 7}, threads=True)
+    records = collect_runs(root)
+    assert [(r.name, r.cpu, r.threads) for r in records] == [("odd", "", None), ("old", "", None)]
+    assert machines_note(records) == ""  # both 'not recorded, ?': one group

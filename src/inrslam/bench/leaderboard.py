@@ -93,6 +93,8 @@ class RunRecord:
     metrics: dict = field(default_factory=dict)
     config: dict = field(default_factory=dict)
     error: str | None = None
+    cpu: str = ""  # CPU model the run ran on (run_info.json `machine`; '' when not recorded)
+    threads: int | None = None  # torch / numba threads the run used (run_info.json)
 
     def value(self, col: Column) -> float | None:
         """The column's value for this run (scaled), or None when missing/non-finite."""
@@ -171,9 +173,13 @@ def read_run(run_dir: str | os.PathLike) -> RunRecord:
         status = "corrupt: " + ", ".join(corrupt)
     else:
         status = "complete" if complete else ("failed" if err else str(info.get("status", "not started")))
+    cpu = _mapping(info.get("machine")).get("cpu")
+    threads = info.get("threads")
     return RunRecord(run_dir=d, name=d.name, scene=str(scene), encoding=str(encoding), render=str(render),
                      preset=str(bench.get("preset") or ""), seed=seed, complete=complete, status=status,
-                     metrics=metrics if complete else {}, config=config, error=err)
+                     metrics=metrics if complete else {}, config=config, error=err,
+                     cpu=cpu if isinstance(cpu, str) else "",
+                     threads=threads if isinstance(threads, int) and not isinstance(threads, bool) else None)
 
 
 def collect_runs(runs_dir: str | os.PathLike, exclude: Path | None = None) -> list[RunRecord]:
@@ -293,7 +299,7 @@ def mark_best(rows: list[Row], columns: tuple[Column, ...] = COLUMNS) -> None:
     """Set `row.best[key]` for the row(s) with the best mean of each column (ties all marked), among the means
     over all of a row's runs (a `Row.partial` mean is never best)."""
     for c in columns:
-        means = [r.mean[c.key] for r in rows if r.mean.get(c.key) is not None and not r.partial(c.key)]
+        means = [m for r in rows if (m := r.mean.get(c.key)) is not None and not r.partial(c.key)]
         target = (max if c.higher_better else min)(means) if means else None
         for r in rows:
             m = r.mean.get(c.key)

@@ -43,7 +43,7 @@ from inrslam.io.atomic import write_text
 from inrslam.io.rundir import RunDir, read_json
 
 RENDERS_SHOWN = 2  # held-out pictures per run on the report page (the first ones)
-RUN_FIELDS = ("name", "scene", "encoding", "render", "preset", "seed", "status", "error")
+RUN_FIELDS = ("name", "scene", "encoding", "render", "preset", "seed", "status", "error", "cpu", "threads")
 METRIC_FIELDS = ("ate_rmse_m", "ate_mean_m", "rpe_trans_m", "rpe_rot_deg", "psnr_db", "ssim", "depth_l1_m",
                  "psnr_process_db", "depth_l1_process_m", "acc_m", "comp_m", "comp_ratio", "track_ms_per_frame",
                  "map_ms_per_call", "model_size_mb", "peak_memory_mb", "frames", "wall_time_s")
@@ -56,7 +56,8 @@ def runs_csv(records: list[RunRecord]) -> str:
     w.writerow(RUN_FIELDS + METRIC_FIELDS)
     for r in records:
         w.writerow([r.name, r.scene, r.encoding, r.render, r.preset, "" if r.seed is None else r.seed, r.status,
-                    r.error or ""] + ["" if r.metrics.get(k) is None else r.metrics[k] for k in METRIC_FIELDS])
+                    r.error or "", r.cpu, "" if r.threads is None else r.threads]
+                   + ["" if r.metrics.get(k) is None else r.metrics[k] for k in METRIC_FIELDS])
     return buf.getvalue()
 
 
@@ -109,6 +110,21 @@ def status_summary(records: list[RunRecord]) -> str:
     for r in records:
         counts[r.status] = counts.get(r.status, 0) + 1
     return f"{len(records)} runs" + (": " + ", ".join(f"{n} {s}" for s, n in counts.items()) if counts else "")
+
+
+def machines_note(records: list[RunRecord]) -> str:
+    """'' when the complete runs ran on one CPU model with one thread count (or none recorded one); else a sentence
+    saying that Track / Map times mix machines or thread counts, with the runs per machine."""
+    done = [r for r in records if r.complete]
+    cpus: dict[str, int] = {}
+    for r in done:
+        key = f"{r.cpu or 'not recorded'}, {r.threads if r.threads is not None else '?'} thread(s)"
+        cpus[key] = cpus.get(key, 0) + 1
+    if len(cpus) <= 1:
+        return ""
+    listed = "; ".join(f"{k}: {n} run(s)" for k, n in sorted(cpus.items(), key=lambda kv: (-kv[1], kv[0])))
+    return (f"Times mix machines or thread counts ({listed}): compare Track / Map only between runs of one machine "
+            "(runs.csv names each run's).")
 
 
 def _write_tables(out: Path, stem: str, rows, title: str, scene: str | None = None) -> None:
@@ -211,6 +227,9 @@ def _html(runs_dir: Path, out: Path, records, rows, scene_rows: dict, plots: dic
         counts = ", ".join(f"{k} {v}" for k, v in counts.items()) if isinstance(counts, dict) else ""
         parts.append(f"<p>Sweep <code>{e(str(status.get('spec', '')))}</code>: state {e(str(status.get('state')))}"
                      f" ({e(counts)}).</p>")
+    mixed = machines_note(records)
+    if mixed:
+        parts.append(f"<p class='fail'>{e(mixed)}</p>")
     parts += ["<h2>All scenes</h2>", to_html(rows, COLUMNS),
               "<p>Tables: <a href='leaderboard.md'>Markdown</a>, <a href='leaderboard.csv'>CSV</a>, "
               "<a href='leaderboard.tex'>LaTeX</a>, <a href='runs.csv'>per-run CSV</a>.</p>"]

@@ -45,8 +45,10 @@ def _tum(path: Path, ts: np.ndarray, pos: np.ndarray) -> None:
 
 def write_fake_run(run_dir: str | os.PathLike, encoding: str, render: str, scene: str = "room", seed: int = 0,
                    metrics: dict | None = None, frames: int = 10, status: str = "complete",
-                   preset: str | None = None, noise: float = 0.01) -> Path:
-    """Write a run directory as `inrslam run` would (config.yaml, run_info.json, metrics.json, trajectories, log)."""
+                   preset: str | None = None, noise: float = 0.01, machine: dict | None = None,
+                   threads: int | None = None) -> Path:
+    """Write a run directory as `inrslam run` would (config.yaml, run_info.json, metrics.json, trajectories, log);
+    run_info.json holds `machine` and `threads` when given."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     path = scene if (":" in scene or "/" in scene) else f"builtin:{scene}"
@@ -69,8 +71,13 @@ def write_fake_run(run_dir: str | os.PathLike, encoding: str, render: str, scene
     m.setdefault("encoding", encoding)
     m.setdefault("render", render)
     write_json(run_dir / "metrics.json", m)
-    write_json(run_dir / "run_info.json", {"status": status, "encoding": encoding, "render": render,
-                                           "dataset": {"kind": "builtin", "root": path, "frames": frames}})
+    info: dict = {"status": status, "encoding": encoding, "render": render,
+                  "dataset": {"kind": "builtin", "root": path, "frames": frames}}
+    if machine is not None:
+        info["machine"] = machine
+    if threads is not None:
+        info["threads"] = threads
+    write_json(run_dir / "run_info.json", info)
     return run_dir
 
 
