@@ -1,8 +1,9 @@
-"""Per-frame SLAM time of the `accurate` and `gicp` presets against `paper`, in one run (issue: accurate preset,
-target <= 2x paper). Prints a table and the ratios; never asserted in tests.
+"""Per-frame SLAM time of the `accurate` and `gicp` presets (or any, `--presets`) against `paper`, in one run
+(issue: accurate preset, target <= 2x paper). Prints a table and the ratios; never asserted in tests.
 
     python benchmarks/bench_presets.py                           # 40 frames of builtin:room, every F in --encodings
     python benchmarks/bench_presets.py --encodings dense hash --frames 60 --data builtin:cluttered
+    python benchmarks/bench_presets.py --presets paper paper_fused --encodings dense hash --frames 60
     python benchmarks/bench_presets.py --frames 30 --data ../shared/data/7scenes_redkitchen --set data.dataset=7scenes \
         data.bounds_frames=40                                    # config overrides for every preset
 
@@ -54,12 +55,12 @@ def main() -> None:
 
     print(f"# machine: {cpu_line()}, torch "
           f"{torch.__version__}; data {args.data}, {args.frames} frames")
-    print(f"{'preset':<9} {'F':<9} {'G':<8} {'track ms/frame':>15} {'map ms/call':>12} {'s/frame':>8} {'init s':>7}")
+    print(f"{'preset':<11} {'F':<9} {'G':<8} {'track ms/frame':>15} {'map ms/call':>12} {'s/frame':>8} {'init s':>7}")
     for enc in args.encodings:
         rows = {}
         for preset in args.presets:
             r = rows[preset] = run_one(preset, enc, args.frames, args.data, args.set)
-            print(f"{preset:<9} {enc:<9} {r['render']:<8} {r['track_ms']:>15.0f} {r['map_ms']:>12.0f} "
+            print(f"{preset:<11} {enc:<9} {r['render']:<8} {r['track_ms']:>15.0f} {r['map_ms']:>12.0f} "
                   f"{r['per_frame_s']:>8.3f} {r['init_s']:>7.1f}", flush=True)
         if "paper" in rows:
             for preset, r in rows.items():

@@ -99,6 +99,22 @@ def test_presets_and_unknown_preset():
         load_config(preset="papr")
 
 
+def _leaves(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        out.update(_leaves(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def test_paper_fused_is_the_paper_loop_with_every_fused_kernel():
+    """`paper_fused` changes nothing of `paper` but the three kernel switches (the same maths, rounded otherwise)."""
+    paper = _leaves(config_to_dict(load_config(preset="paper")))
+    fused = _leaves(config_to_dict(load_config(preset="paper_fused")))
+    assert set(paper) == set(fused)
+    assert {k: (paper[k], fused[k]) for k in paper if paper[k] != fused[k]} == {
+        "field.decoder_kernel": ("torch", "auto"), "loss.kernel": ("torch", "auto"), "render.kernel": ("torch", "auto")}
+
+
 def test_missing_and_circular_files(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "nope.yaml")

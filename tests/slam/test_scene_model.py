@@ -147,10 +147,12 @@ def test_held_out_refined_surface_search_finds_a_ball_the_uniform_samples_step_o
     torch.testing.assert_close(refined[~on_ball], plain[~on_ball])  # elsewhere the same surface
 
 
-@pytest.mark.parametrize("preset, fused", [("fast", True), ("accurate", True), ("gicp", True), ("paper", False)])
+@pytest.mark.parametrize("preset, fused", [("fast", True), ("accurate", True), ("gicp", True), ("paper_fused", True),
+                                           ("paper", False)])
 def test_which_presets_run_the_fused_decoders_and_losses(preset, fused):
-    """`accurate` (and `fast` and `gicp`, which inherit from it) train their map through the fused decoders (both in
-    one call), G's fused weights and the fused losses; `paper` through autograd's (bit for bit the paper's loop)."""
+    """`accurate` (and `fast` and `gicp`, which inherit from it) and `paper_fused` train their map through the fused
+    decoders (both in one call), G's fused weights and the fused losses; `paper` through autograd's (bit for bit the
+    paper's loop)."""
     cfg = load_config(preset=preset, overrides=TINY)
     torch.manual_seed(0)
     model = SceneModel(cfg, BOUNDS)
