@@ -137,12 +137,21 @@ def test_a_run_with_glibcs_own_malloc_settings_is_byte_identical(run_a, tmp_path
     assert tuned["tuned"] is (malloc_env._glibc() is not None and os.environ.get(malloc_env.ENV) != "default")
 
 
-def test_the_paper_loop_with_every_fused_kernel_tracks_as_the_paper_loop(run_a, tmp_path):
+FUSED = ["field.decoder_kernel=auto", "loss.kernel=auto", "render.kernel=auto"]  # what `paper_fused` adds to `paper`
+
+
+@pytest.fixture(scope="module")
+def run_fused(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "fused"
+    run_slam(quick_cfg(FUSED), out)
+    return out
+
+
+def test_the_paper_loop_with_every_fused_kernel_tracks_as_the_paper_loop(run_a, run_fused):
     """`paper_fused`'s three kernel switches (on `quick`'s sizes here) compute the same maths as `paper`'s autograd,
     rounded otherwise: the two trajectories part only by rounding that the optimisation then carries along, a small
     fraction of the loop's own drift (on these tiny images ~5 cm over the run)."""
-    fused = tmp_path / "fused"
-    run_slam(quick_cfg(["field.decoder_kernel=auto", "loss.kernel=auto", "render.kernel=auto"]), fused)
+    fused = run_fused
     (_, a), (_, b), (_, gt) = (read_tum(d / name) for d, name in ((run_a, "trajectory.txt"),
                                                                    (fused, "trajectory.txt"),
                                                                    (run_a, "trajectory_gt.txt")))
@@ -150,6 +159,22 @@ def test_the_paper_loop_with_every_fused_kernel_tracks_as_the_paper_loop(run_a, 
     drift = np.linalg.norm(a[:, :3, 3] - gt[:, :3, 3], axis=1)
     assert apart[:4].max() < 1e-4  # the first frames agree to 0.1 mm
     assert (apart <= 0.25 * drift + 1e-3).all(), (apart, drift)
+
+
+def test_interrupted_run_with_every_fused_kernel_resumes_to_the_uninterrupted_result(run_fused, tmp_path):
+    """`paper_fused` is deterministic per seed and resumable exactly, as `paper` is."""
+    out = tmp_path / "interrupted"
+
+    def stop_at_frame_5(i, n, info):
+        if i == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(quick_cfg(FUSED), out, progress=stop_at_frame_5)
+    assert (out / "checkpoints" / "latest.pt").is_file() and not (out / "trajectory.txt").exists()
+    resume_slam(out)
+    for name in ("trajectory.txt", "trajectory_relative.txt", "mesh.ply"):
+        assert (out / name).read_bytes() == (run_fused / name).read_bytes(), name
 
 
 def test_killed_run_resumes_to_identical_result(run_a, tmp_path):
