@@ -10,6 +10,8 @@ import pytest
 
 pytest.importorskip("small_gicp", reason="the accurate / gicp presets need small_gicp (pip install small_gicp)")
 
+from interrupted import run_interrupted  # noqa: E402
+
 from inrslam.config import load_config  # noqa: E402
 from inrslam.io.trajectory import read_tum  # noqa: E402
 from inrslam.runner import resume_slam, run_slam  # noqa: E402
@@ -152,12 +154,8 @@ def test_a_frame_without_depth_never_becomes_the_gicp_target(target):
 def test_interrupted_accurate_run_resumes_to_the_uninterrupted_result(all_on, tmp_path):
     out = tmp_path / "interrupted"
 
-    def stop_after_frame_4(i, n, info):
-        if i == 4:
-            raise KeyboardInterrupt  # after the checkpoint of frame 3 (checkpoint_every = 2)
-
-    with pytest.raises(KeyboardInterrupt):
-        run_slam(load_config(preset="accurate", overrides=SMALL + ALL_ON), out, progress=stop_after_frame_4)
+    # after the checkpoint of frame 3 (checkpoint_every = 2)
+    run_interrupted(load_config(preset="accurate", overrides=SMALL + ALL_ON), out, 4)
     assert (out / "checkpoints" / "latest.pt").is_file() and not (out / "trajectory.txt").exists()
     resume_slam(out)
     assert (out / "trajectory.txt").read_text() == (all_on / "trajectory.txt").read_text()
@@ -174,12 +172,7 @@ def test_resume_after_bundle_adjustment_moved_local_map_keyframes(tmp_path):
     run_slam(load_config(preset="accurate", overrides=extra), full)
     assert [r["gicp_target"] for r in tracks(full)][-2:] == [5, 5]  # frame 7 keeps frame 6's local map
 
-    def stop_at_frame_7(i, n, info):
-        if i == 7:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        run_slam(load_config(preset="accurate", overrides=extra), out, progress=stop_at_frame_7)
+    run_interrupted(load_config(preset="accurate", overrides=extra), out, 7)
     resume_slam(out)
     assert (out / "trajectory.txt").read_text() == (full / "trajectory.txt").read_text()
 
@@ -261,12 +254,8 @@ def test_photometric_refinement_takes_over_where_gicp_fails(tmp_path_factory):
 def test_interrupted_noisy_accurate_run_resumes_to_the_uninterrupted_result(noisy, tmp_path):
     out = tmp_path / "interrupted"
 
-    def stop_after_frame_4(i, n, info):
-        if i == 4:
-            raise KeyboardInterrupt  # after the checkpoint of frame 3: the photometric reference is rebuilt
-
-    with pytest.raises(KeyboardInterrupt):
-        run_slam(load_config(preset="accurate", overrides=SMALL + NOISY), out, progress=stop_after_frame_4)
+    # after the checkpoint of frame 3: the photometric reference is rebuilt
+    run_interrupted(load_config(preset="accurate", overrides=SMALL + NOISY), out, 4)
     resume_slam(out)
     assert (out / "trajectory.txt").read_text() == (noisy / "trajectory.txt").read_text()
 
@@ -300,12 +289,8 @@ def test_a_final_pose_graph_moves_the_trajectory_after_the_last_frame_only_when_
 def test_an_interrupted_refined_run_resumes_to_the_uninterrupted_result(refined, tmp_path):
     out = tmp_path / "interrupted"
 
-    def stop_after_frame_4(i, n, info):
-        if i == 4:
-            raise KeyboardInterrupt  # after the graph: the resumed run tracks frame 4 and builds it again
-
-    with pytest.raises(KeyboardInterrupt):
-        run_slam(load_config(preset="accurate", overrides=SMALL + NOISY + REFINE), out, progress=stop_after_frame_4)
+    # after the graph: the resumed run tracks frame 4 and builds it again
+    run_interrupted(load_config(preset="accurate", overrides=SMALL + NOISY + REFINE), out, 4)
     resume_slam(out)
     assert (out / "trajectory.txt").read_text() == (refined / "trajectory.txt").read_text()
 
@@ -405,12 +390,8 @@ def test_interrupted_run_with_averaged_photometric_keyframes_resumes_exactly(kf_
     whole = kf_refs3
     out = tmp_path / "interrupted"
 
-    def stop_after_frame_4(i, n, info):
-        if i == 4:
-            raise KeyboardInterrupt  # the older keyframes' pyramids are rebuilt from the dataset
-
-    with pytest.raises(KeyboardInterrupt):
-        run_slam(load_config(preset="accurate", overrides=over), out, progress=stop_after_frame_4)
+    # the older keyframes' pyramids are rebuilt from the dataset
+    run_interrupted(load_config(preset="accurate", overrides=over), out, 4)
     resume_slam(out)
     assert (out / "trajectory.txt").read_text() == (whole / "trajectory.txt").read_text()
 
@@ -493,11 +474,7 @@ def test_interrupted_run_aligned_onto_several_keyframes_resumes_exactly(track_re
     over = SMALL + RENEW + ["slam.photo.track_refs=3"]  # track_refs3's settings
     out = tmp_path / "interrupted"
 
-    def stop_after_frame_3(i, n, info):
-        if i == 3:
-            raise KeyboardInterrupt  # the older keyframes' pyramids are rebuilt from the dataset on resume
-
-    with pytest.raises(KeyboardInterrupt):
-        run_slam(load_config(preset="accurate", overrides=over), out, progress=stop_after_frame_3)
+    # the older keyframes' pyramids are rebuilt from the dataset on resume
+    run_interrupted(load_config(preset="accurate", overrides=over), out, 3)
     resume_slam(out)
     assert (out / "trajectory.txt").read_text() == (track_refs3 / "trajectory.txt").read_text()

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from interrupted import run_interrupted
 
 from inrslam.cli import main
 from inrslam.config import load_config
@@ -63,12 +64,7 @@ def test_the_run_reloads_as_an_ehe_model_that_renders(ehe_run):
 def test_a_resumed_ehe_run_equals_the_uninterrupted_one(ehe_run, tmp_path):
     out = tmp_path / "cut"
 
-    def stop(i, n, info):
-        if i == 2:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):  # evaluation off: it does not change the map
-        run_slam(ehe_cfg(["eval.enabled=false"]), out, progress=stop)
+    run_interrupted(ehe_cfg(["eval.enabled=false"]), out, 2)  # evaluation off: it does not change the map
     assert (out / "checkpoints" / "latest.pt").exists() and not (out / "metrics.json").exists()
     resume_slam(out)
     a = json.loads((ehe_run / "metrics.json").read_text())

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from interrupted import run_interrupted
 from polling import wait_for
 
 from inrslam.config import load_config
@@ -159,18 +160,15 @@ def test_the_paper_loop_with_every_fused_kernel_tracks_as_the_paper_loop(run_a, 
     drift = np.linalg.norm(a[:, :3, 3] - gt[:, :3, 3], axis=1)
     assert apart[:4].max() < 1e-4  # the first frames agree to 0.1 mm
     assert (apart <= 0.25 * drift + 1e-3).all(), (apart, drift)
+    m_f, m_a = (json.loads((d / "metrics.json").read_text()) for d in (fused, run_a))
+    assert m_f["ate_rmse_m"] < 0.02 and m_f["ate_rmse_m"] < 1.5 * m_a["ate_rmse_m"] + 0.002
 
 
 def test_interrupted_run_with_every_fused_kernel_resumes_to_the_uninterrupted_result(run_fused, tmp_path):
     """`paper_fused` is deterministic per seed and resumable exactly, as `paper` is."""
     out = tmp_path / "interrupted"
 
-    def stop_at_frame_5(i, n, info):
-        if i == 5:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        run_slam(quick_cfg(FUSED), out, progress=stop_at_frame_5)
+    run_interrupted(quick_cfg(FUSED), out, 5)
     assert (out / "checkpoints" / "latest.pt").is_file() and not (out / "trajectory.txt").exists()
     resume_slam(out)
     for name in ("trajectory.txt", "trajectory_relative.txt", "mesh.ply"):
@@ -238,24 +236,3 @@ def test_initialisation_ends_on_a_plateau_only_when_asked():
     early = init_record(["slam.init_stop_window=10", "slam.init_stop_tol=0.5"])  # stop once a window falls < 50 %
     assert plain["type"] == early["type"] == "init" and plain["iters"] == 100
     assert 20 <= early["iters"] < 100 and early["iters"] % 10 == 0
-
-
-def test_fused_decoders_track_as_well_are_deterministic_and_resume_exactly(run_a, tmp_path):
-    """`field.decoder_kernel=numba` (fused grid decoders): another rounding of the same maths, so the trajectory
-    differs from autograd's in the last bits but is as accurate; a run is deterministic and an interrupted one
-    resumes to the uninterrupted result."""
-    fused = ["field.decoder_kernel=numba", "mesh.enabled=false"]
-    run_slam(quick_cfg(fused), tmp_path / "f")
-    m_f = json.loads((tmp_path / "f" / "metrics.json").read_text())
-    m_a = json.loads((run_a / "metrics.json").read_text())
-    assert m_f["ate_rmse_m"] < 0.02 and m_f["ate_rmse_m"] < 1.5 * m_a["ate_rmse_m"] + 0.002
-
-    def stop(i, n, info):
-        if i == 6:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        run_slam(quick_cfg(fused), tmp_path / "cut", progress=stop)
-    assert not (tmp_path / "cut" / "metrics.json").exists()
-    resume_slam(tmp_path / "cut")
-    assert (tmp_path / "cut" / "trajectory.txt").read_bytes() == (tmp_path / "f" / "trajectory.txt").read_bytes()

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from interrupted import run_interrupted
 from scipy.spatial.transform import Rotation
 
 from inrslam.cli import main
@@ -139,12 +140,7 @@ def test_mapping_every_frame_maps_every_frame_and_a_finished_run_may_drop_its_ch
 def test_a_given_pose_run_resumes_to_the_same_map(gt_run, tmp_path):
     out = tmp_path / "cut"
 
-    def stop(i, n, info):
-        if i == 3:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        run_slam(load_config(preset="quick", overrides=OVERRIDES + ["slam.poses=gt"]), out, progress=stop)
+    run_interrupted(load_config(preset="quick", overrides=OVERRIDES + ["slam.poses=gt"]), out, 3)
     assert (out / "checkpoints" / "latest.pt").exists() and not (out / "metrics.json").exists()
     resume_slam(out)
     assert (out / "trajectory.txt").read_bytes() == (gt_run / "trajectory.txt").read_bytes()

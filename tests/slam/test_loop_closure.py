@@ -26,6 +26,7 @@ from inrslam.slam.loop_closure import (
 )
 
 gtsam = pytest.importorskip("gtsam", reason="loop closure's pose graph needs gtsam (pip install gtsam)")
+from interrupted import run_interrupted  # noqa: E402
 from test_registration_sdf_tracking import CORNER, INTR, WALL, look_at, plane_depth  # noqa: E402
 
 from inrslam.slam import pose_graph  # noqa: E402
@@ -450,21 +451,16 @@ def test_a_colour_margin_no_registration_can_meet_closes_no_loop(loop_run, tmp_p
 
 def test_interrupted_loop_closure_run_resumes_to_the_uninterrupted_result(loop_run, tmp_path):
     from inrslam.config import load_config
-    from inrslam.runner import resume_slam, run_slam
+    from inrslam.runner import resume_slam
     from inrslam.runner.checkpoint import load_checkpoint
 
     out = tmp_path / "interrupted"
     first = _records(loop_run, "loop_edge") + _records(loop_run, "loop_closed")
     stop_at = min(r["frame"] for r in first) + 5  # after the first loop edge and a checkpoint (every 5 frames)
 
-    def stop(i, n, info):
-        if i == stop_at:
-            raise KeyboardInterrupt
-
     cfg = load_config(preset="accurate", overrides=["data.path=builtin:loop", "slam.loop_closure=true", *LOOP_RUN,
                                                     "slam.checkpoint_every=5"])
-    with pytest.raises(KeyboardInterrupt):
-        run_slam(cfg, out, progress=stop)
+    run_interrupted(cfg, out, stop_at)
     saved = load_checkpoint(out / "checkpoints" / "latest.pt")
     assert saved["loops"] and saved["kf_odometry"]  # the graph's edges travel with the checkpoint
     resume_slam(out)
