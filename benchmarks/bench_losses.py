@@ -13,7 +13,7 @@ import argparse
 import statistics
 import time
 
-from inrslam.machine import cpu_line
+from iteration_setup import machine_line
 
 
 def main() -> None:
@@ -22,14 +22,11 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=60)
     ap.add_argument("--threads", type=int, default=0, help="torch / numba threads (0: the default)")
     args = ap.parse_args()
-    import torch
-
     from inrslam.fields.kernels.threads import set_threads
 
     if args.threads:
         set_threads(args.threads)
-    print(f"# machine: {cpu_line()}, torch {torch.__version__}"
-          f", threads {torch.get_num_threads()}; {args.samples} samples per ray, float32, median of {args.reps}")
+    print(machine_line(f"{args.samples} samples per ray, float32, median of {args.reps}"))
     for R in (1024, 2048):
         bench_batch(R, args.samples, args.reps)
 

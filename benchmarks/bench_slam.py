@@ -18,9 +18,7 @@ import json
 import time
 from collections.abc import Sequence
 
-from iteration_setup import paper_config
-
-from inrslam.machine import cpu_line
+from iteration_setup import machine_line, paper_config
 
 ENCODINGS = ["mlp", "dense", "hash", "triplane", "tensorf", "dense+tri", "hash+tri"]
 
@@ -65,10 +63,7 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more config overrides for every run "
                     "(e.g. slam.track_iters=10)")
     args = ap.parse_args()
-    import torch
-
-    print(f"# machine: {cpu_line()}, torch "
-          f"{torch.__version__}, threads {torch.get_num_threads()}; data {args.data}, G={args.render}, paper preset")
+    print(machine_line(f"data {args.data}, G={args.render}, paper preset"))
     print(f"{'F':<10} {'lookups':<7} {'decoder':<7} {'losses':<7} {'track ms/frame':>15} {'map ms/call':>12} "
           f"{'s/frame':>8} {'init ms/it':>11}")
     rows = []

@@ -152,15 +152,14 @@ def test_the_paper_loop_with_every_fused_kernel_tracks_as_the_paper_loop(run_a, 
     """`paper_fused`'s three kernel switches (on `quick`'s sizes here) compute the same maths as `paper`'s autograd,
     rounded otherwise: the two trajectories part only by rounding that the optimisation then carries along, a small
     fraction of the loop's own drift (on these tiny images ~5 cm over the run)."""
-    fused = run_fused
     (_, a), (_, b), (_, gt) = (read_tum(d / name) for d, name in ((run_a, "trajectory.txt"),
-                                                                   (fused, "trajectory.txt"),
+                                                                   (run_fused, "trajectory.txt"),
                                                                    (run_a, "trajectory_gt.txt")))
     apart = np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1)  # metres, per frame
     drift = np.linalg.norm(a[:, :3, 3] - gt[:, :3, 3], axis=1)
     assert apart[:4].max() < 1e-4  # the first frames agree to 0.1 mm
     assert (apart <= 0.25 * drift + 1e-3).all(), (apart, drift)
-    m_f, m_a = (json.loads((d / "metrics.json").read_text()) for d in (fused, run_a))
+    m_f, m_a = (json.loads((d / "metrics.json").read_text()) for d in (run_fused, run_a))
     assert m_f["ate_rmse_m"] < 0.02 and m_f["ate_rmse_m"] < 1.5 * m_a["ate_rmse_m"] + 0.002
 
 
