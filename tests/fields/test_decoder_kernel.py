@@ -326,3 +326,82 @@ def test_auto_runs_on_any_device_and_matches_the_reference(device):
     assert out_a.device.type == device
     torch.testing.assert_close(out_a, out_r, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(grads_a[0], grads_r[0], rtol=1e-4, atol=1e-4)
+
+
+def _split_run(x, w1, w2, cot, split, need):
+    """Outputs, input gradients and the autograd node of `Mlp2SplitFn` on [x[:, :split], x[:, split:]]; need: which
+    of (xa, xb, w1, w2) require a gradient."""
+    leaves = [t.clone().requires_grad_(r) for t, r in zip((x[:, :split], x[:, split:], w1, w2), need)]
+    ya, yb = Mlp2SplitFn.apply(*leaves, 1)
+    node = ya.grad_fn
+    torch.autograd.backward([ya, yb], [cot[:, :1], cot[:, 1:]])
+    return (ya.detach(), yb.detach()), [leaves[0].grad, leaves[1].grad], node
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("n", [1, BLOCK - 1, 2 * BLOCK + 37])
+def test_backward_from_the_relu_mask_equals_the_recomputing_one(monkeypatch, n, dtype):
+    """Tracking (weights frozen): the input gradients from the forward's ReLU mask (`KEEP_MASK`) equal, bit for bit,
+    those of the backward that recomputes the hidden layer, for `Mlp2Fn` and `Mlp2SplitFn` with either input or
+    both needing a gradient; NaN inputs and pre-activations exactly at the kink included."""
+    import inrslam.fields.kernels.mlp as mlp
+
+    x, w1, w2, cot = _inputs(n, n_in=7, hidden=64, n_out=4, dtype=dtype)
+    x[::7, 2] = float("nan")
+    x[1::5] = 0.0  # every pre-activation exactly 0: the gradient stops there, as in torch's ReLU
+    runs = {}
+    for keep in (False, True):
+        monkeypatch.setattr(mlp, "KEEP_MASK", keep)
+        out, grads = _grads("numba", x, w1, w2, cot, need=(True, False, False))
+        splits = [_split_run(x, w1, w2, cot, 4, need) for need in ((True, True, False, False),
+                                                                    (True, False, False, False),
+                                                                    (False, True, False, False))]
+        runs[keep] = (out, grads[0], splits)
+    assert torch.equal(runs[True][0].nan_to_num(7.0), runs[False][0].nan_to_num(7.0))
+    assert torch.equal(runs[True][1].nan_to_num(7.0), runs[False][1].nan_to_num(7.0))
+    assert bool(runs[True][1][1::5].eq(0).all())
+    for (outs_m, grads_m, node_m), (outs_r, grads_r, node_r) in zip(runs[True][2], runs[False][2]):
+        assert node_m.mask is not None and node_r.mask is None
+        for a, b in zip(outs_m, outs_r):
+            assert torch.equal(a.nan_to_num(7.0), b.nan_to_num(7.0))
+        for a, b in zip(grads_m, grads_r):
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert torch.equal(a.nan_to_num(7.0), b.nan_to_num(7.0))
+
+
+def test_the_relu_mask_is_kept_only_where_no_weight_needs_a_gradient():
+    """Mapping (weights trained) recomputes the hidden layer for its weight gradients and keeps no mask; tracking
+    (inputs only) keeps one byte per hidden unit and sample; a forward that needs no gradient keeps none."""
+    x, w1, w2, _ = _inputs(50, hidden=32)
+    frozen = mlp2(x.clone().requires_grad_(), w1, w2, backend="numba")
+    assert frozen.grad_fn.mask.shape == (50, 32) and frozen.grad_fn.mask.dtype == np.uint8
+    trained = mlp2(x.clone().requires_grad_(), w1.clone().requires_grad_(), w2, backend="numba")
+    assert trained.grad_fn.mask is None
+    with torch.no_grad():
+        assert mlp2(x, w1, w2, backend="numba").grad_fn is None
+
+
+def test_relu_mask_backward_gradcheck_float64():
+    """The mask path's input gradients against finite differences (weights frozen), for both Functions; samples
+    1e-3 away from every ReLU kink (see `test_gradcheck_float64`)."""
+    x, w1, w2, _ = _inputs(200, n_in=7, hidden=8, n_out=4, dtype=torch.float64)
+    x = x[(x @ w1.T).abs().amin(dim=1) > 1e-3][:9]
+    assert x.shape[0] == 9
+    assert torch.autograd.gradcheck(lambda a: Mlp2Fn.apply(a, w1, w2), [x.clone().requires_grad_()], eps=1e-6,
+                                    atol=1e-6)
+    leaves = [x[:, :4].clone().requires_grad_(), x[:, 4:].clone().requires_grad_()]
+    assert torch.autograd.gradcheck(lambda a, b: Mlp2SplitFn.apply(a, b, w1, w2, 1), leaves, eps=1e-6, atol=1e-6)
+
+
+def test_relu_mask_analytic_case():
+    """`test_analytic_case` with the weights frozen (the mask path): pre-activations (1, -2, -1) -> mask (1, 0, 0),
+    gradient to x = W1^T (mask * W2^T) = (2, 0); a pre-activation of exactly 0 passes no gradient."""
+    w1 = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    w2 = torch.tensor([[2.0, 3.0, 4.0]])
+    x = torch.tensor([[1.0, -2.0], [1.0, -1.0]], requires_grad=True)  # second row: (1, -1, 0)
+    y = mlp2(x, w1, w2, backend="numba")
+    assert y.grad_fn.mask.tolist() == [[1, 0, 0], [1, 0, 0]]
+    y.backward(torch.ones_like(y))
+    assert y.detach().flatten().tolist() == [2.0, 2.0]
+    assert x.grad.tolist() == [[2.0, 0.0], [2.0, 0.0]]

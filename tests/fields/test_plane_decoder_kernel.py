@@ -190,3 +190,62 @@ def test_auto_runs_on_any_device_and_matches_the_reference(device):
     torch.testing.assert_close(out_a, out_r, rtol=1e-5, atol=1e-5)
     for a, b in zip(grads_a, grads_r):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("n", [1, BLOCK - 1, 3 * BLOCK + 37])
+def test_backward_from_the_relu_masks_equals_the_recomputing_one(monkeypatch, n, dtype):
+    """Tracking (parameters frozen): the input gradient from the forward's two ReLU masks (`mlp.KEEP_MASK`) equals,
+    bit for bit, that of the backward that recomputes both hidden layers; NaN inputs included."""
+    import inrslam.fields.kernels.mlp as mlp
+
+    x, params, cot = _inputs(n, dtype=dtype)
+    x[::7, 2] = float("nan")
+    runs = {}
+    for keep in (False, True):
+        monkeypatch.setattr(mlp, "KEEP_MASK", keep)
+        leaf = x.clone().requires_grad_()
+        out = mlp3(leaf, *params, backend="numba")
+        assert (out.grad_fn.masks is not None) == keep
+        out.backward(cot)
+        runs[keep] = out.detach(), leaf.grad
+    for a, b in zip(runs[True], runs[False]):
+        assert torch.equal(a.nan_to_num(7.0), b.nan_to_num(7.0))
+
+
+def test_the_relu_masks_are_kept_only_where_no_parameter_needs_a_gradient():
+    """Tracking keeps one byte per hidden unit and sample for each hidden layer; mapping (parameters trained: their
+    gradients read the hidden layers themselves) keeps none."""
+    x, params, _ = _inputs(40, h1=32, h2=16)
+    frozen = mlp3(x.clone().requires_grad_(), *params, backend="numba")
+    assert [m.shape for m in frozen.grad_fn.masks] == [(40, 32), (40, 16)]
+    assert all(m.dtype == np.uint8 for m in frozen.grad_fn.masks)
+    one_trained = [p.clone().requires_grad_(k == 3) for k, p in enumerate(params)]
+    assert mlp3(x.clone().requires_grad_(), *one_trained, backend="numba").grad_fn.masks is None
+
+
+def test_relu_masks_backward_gradcheck_float64():
+    """The mask path's input gradient against finite differences (parameters frozen), samples 1e-3 away from both
+    layers' kinks (see `test_gradcheck_float64`)."""
+    x, params, _ = _inputs(100, n_in=4, h1=6, h2=5, n_out=2, dtype=torch.float64)
+    w1, b1, w2, b2 = params[:4]
+    pre1 = torch.nn.functional.linear(x, w1, b1)
+    pre2 = torch.nn.functional.linear(torch.relu(pre1), w2, b2)
+    x = x[torch.minimum(pre1.abs().amin(dim=1), pre2.abs().amin(dim=1)) > 1e-3][:6]
+    assert x.shape[0] == 6
+    assert torch.autograd.gradcheck(lambda a: Mlp3Fn.apply(a, *params), [x.clone().requires_grad_()], eps=1e-6,
+                                    atol=1e-6)
+
+
+def test_relu_masks_analytic_case():
+    """`test_analytic_case` with the parameters frozen (the mask path), and a second sample whose second hidden
+    pre-activation is exactly 0: x = [0.5, -2] -> hidden1 (0.5, 0) -> pre2 = 2 · 0.5 - 1 = 0, so y = b3 = 0.5 and
+    no gradient passes (torch's ReLU at 0)."""
+    x = torch.tensor([[1.0, -2.0], [0.5, -2.0]], requires_grad=True)
+    params = [torch.eye(2), torch.tensor([0.0, 1.0]), torch.tensor([[2.0, 5.0]]), torch.tensor([-1.0]),
+              torch.tensor([[3.0]]), torch.tensor([0.5])]
+    y = mlp3(x, *params, backend="numba")
+    assert [m.tolist() for m in y.grad_fn.masks] == [[[1, 0], [1, 0]], [[1], [0]]]
+    y.backward(torch.ones_like(y))
+    assert y.detach().flatten().tolist() == [3.5, 0.5]
+    assert x.grad.tolist() == [[6.0, 0.0], [0.0, 0.0]]

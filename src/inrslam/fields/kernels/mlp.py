@@ -4,7 +4,9 @@ In autograd this small MLP (7 -> 32 -> 1..3 at `paper` settings) spends most of 
 (N, 32) hidden tensors: the matmuls, the ReLU and its mask, forward and backward. The numba kernels cut the samples
 into blocks (``block_rows``), run each block's three small matrix products through BLAS (``np.dot``: hidden layer,
 output, and in the backward the input and weight gradients) and the ReLU and its mask in place on the block, so a
-block's (block, 32) hidden array stays in cache; the backward recomputes it instead of storing it. The reference is
+block's (block, 32) hidden array stays in cache; the backward recomputes it instead of storing it, except where only
+the input needs a gradient (tracking: the map is frozen), whose forward keeps the ReLU mask, one byte per unit and
+sample, for the backward to read (`KEEP_MASK`; the same values). The reference is
 ``mlp2_torch``; ``mlp2`` dispatches. Results do not depend on the thread count: every block is one set of BLAS
 calls small enough that OpenBLAS runs each on one thread (M·N·K ≤ 262 144: the block size follows from the layer
 shapes, ``block_rows``; the backward's from its padded shapes, ``backward_block_rows``) and the weight gradients'
@@ -130,6 +132,43 @@ def backward_block_rows(n_in: int, n_hid: int, n_out: int) -> int:
     return block_rows(np.empty((padded_width(n_in), n_hid)), np.empty((n_out, n_hid)))
 
 
+#: Whether a forward whose weights need no gradient (tracking: the map is frozen) keeps its ReLU masks (one byte per
+#: hidden unit and sample), so that its backward skips recomputing the hidden layers: here and in the plane decoders
+#: (``mlp3``); the same values either way (`benchmarks/bench_decoder_mask.py` times both in one process). False =
+#: recompute, as a forward with weight gradients always does.
+KEEP_MASK = True
+
+
+@njit(inline="always", cache=True, fastmath=FASTMATH)
+def _block_forward_mask(xb, w1t, w2t, mb):  # pragma: no cover - numba
+    """`_block_forward`, also writing mb (m, H) uint8: 0 where the pre-activation is <= 0 (where the backward's
+    `relu_mask_inplace` zeroes the gradient; a NaN passes), else 1."""
+    h = np.dot(xb, w1t)
+    for k in range(h.shape[0]):
+        for j in range(h.shape[1]):
+            if h[k, j] <= 0.0:
+                h[k, j] = 0.0
+                mb[k, j] = 0
+            else:
+                mb[k, j] = 1
+    return np.dot(h, w2t)
+
+
+@njit(inline="always", cache=True, fastmath=FASTMATH)
+def _block_backward_mask(gyb, mb, w1p, w2, tiny, n_in):  # pragma: no cover - numba
+    """The input gradient (m, n_in) of `_block_backward` (flushed as there) from the forward's ReLU mask mb (m, H)
+    instead of a recomputed hidden layer: the same products on the same blocks, so the same values."""
+    flush_inplace(gyb, tiny)
+    gh = np.dot(gyb, w2)
+    for k in range(gh.shape[0]):
+        for j in range(gh.shape[1]):
+            if mb[k, j] == 0:
+                gh[k, j] = 0.0
+    gxp = np.dot(gh, w1p)
+    flush_inplace(gxp, tiny)
+    return gxp[:, :n_in]
+
+
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _forward(x, w1t, w2, block, out):  # pragma: no cover - numba
     """x (N, I), w1t (I, H), w2 (O, H) -> out (N, O) = relu(x w1t) w2^T, `block` samples at a time."""
@@ -162,6 +201,56 @@ def _forward_split(xa, xb, w1t, w2, block, ya, yb):  # pragma: no cover - numba
         out = _block_forward(_joined(xa, xb, n0, n1), w1t, w2t)
         ya[n0:n1] = out[:, :oa]
         yb[n0:n1] = out[:, oa:]
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def _forward_mask(x, w1t, w2, block, out, mask):  # pragma: no cover - numba
+    """`_forward`, also writing the ReLU mask (N, H) uint8 (`_block_forward_mask`)."""
+    n_pts = x.shape[0]
+    w2t = np.ascontiguousarray(w2.T)
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
+        out[n0:n1] = _block_forward_mask(x[n0:n1], w1t, w2t, mask[n0:n1])
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def _forward_split_mask(xa, xb, w1t, w2, block, ya, yb, mask):  # pragma: no cover - numba
+    """`_forward_split`, also writing the ReLU mask (N, H) uint8 (`_block_forward_mask`)."""
+    n_pts, oa = xa.shape[0], ya.shape[1]
+    w2t = np.ascontiguousarray(w2.T)
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
+        out = _block_forward_mask(_joined(xa, xb, n0, n1), w1t, w2t, mask[n0:n1])
+        ya[n0:n1] = out[:, :oa]
+        yb[n0:n1] = out[:, oa:]
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def _backward_mask(mask, w1p, w2, gy, block, tiny, gx):  # pragma: no cover - numba
+    """The input gradient gx (N, I) of `_backward` from the forward's ReLU mask (N, H) (`_block_backward_mask`)."""
+    n_pts = gy.shape[0]
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
+        gx[n0:n1] = _block_backward_mask(gy[n0:n1].copy(), mask[n0:n1], w1p, w2, tiny, gx.shape[1])
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def _backward_split_mask(mask, w1p, w2, gya, gyb, block, ia, n_in, need_xa, need_xb, tiny, gxa,
+                         gxb):  # pragma: no cover - numba
+    """The input gradients gxa (N, ia) / gxb (N, n_in - ia) of `_backward_split`, each when needed, from the
+    forward's ReLU mask (N, H) (`_block_backward_mask`)."""
+    n_pts = gya.shape[0]
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
+        gx = _block_backward_mask(_joined(gya, gyb, n0, n1), mask[n0:n1], w1p, w2, tiny, n_in)
+        if need_xa:
+            gxa[n0:n1] = gx[:, :ia]
+        if need_xb:
+            gxb[n0:n1] = gx[:, ia:]
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -209,6 +298,12 @@ def blas_fits(*weights) -> bool:
     return widest(*weights) <= BLAS_SINGLE_THREAD_MNK
 
 
+def keeps_mask(need_inputs, need_weights) -> bool:
+    """Whether a fused decoder's forward keeps the ReLU mask (`KEEP_MASK`): some input needs a gradient and no weight
+    does (tracking), so the backward computes the input gradient alone, from the mask."""
+    return KEEP_MASK and any(need_inputs) and not any(need_weights)
+
+
 def mlp2_torch(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
     """Reference: x (N, I), w1 (H, I), w2 (O, H) -> (N, O) = relu(x w1^T) w2^T (any device, fully differentiable)."""
     return torch.relu(x @ w1.t()) @ w2.t()
@@ -232,7 +327,12 @@ class Mlp2Fn(torch.autograd.Function):
         w1t = w1.detach().t().contiguous()
         w2c = w2.detach().contiguous()
         out = np.empty((xc.shape[0], w2c.shape[0]), dtype=w1t.numpy().dtype)
-        _forward(xc.numpy(), w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), out)
+        ctx.mask = None
+        if keeps_mask(ctx.needs_input_grad[:1], ctx.needs_input_grad[1:3]):
+            ctx.mask = np.empty((xc.shape[0], w1t.shape[1]), dtype=np.uint8)
+            _forward_mask(xc.numpy(), w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), out, ctx.mask)
+        else:
+            _forward(xc.numpy(), w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), out)
         ctx.save_for_backward(xc, w1t, w2c, x, w1, w2)
         ctx.n_own, ctx.args = 3, ()
         return torch.from_numpy(out)
@@ -248,6 +348,11 @@ class Mlp2Fn(torch.autograd.Function):
         dtype = w1t.numpy().dtype
         w1p = padded_w1(w1t.numpy())
         block = backward_block_rows(n_in, n_hid, n_out)
+        if ctx.mask is not None:  # only the input gradient, from the forward's ReLU mask
+            gx = np.empty((n, n_in), dtype=dtype)
+            _backward_mask(ctx.mask, w1p, w2c.numpy(), gy.detach().to(w1t.dtype).contiguous().numpy(), block,
+                           tiny_of(dtype), gx)
+            return torch.from_numpy(gx), None, None
         n_blocks = (n + block - 1) // block if need_w else 0
         gx = np.empty((n if need_x else 0, n_in), dtype=dtype)
         gw1t = np.zeros((n_blocks, n_in, n_hid), dtype=dtype)
@@ -290,7 +395,13 @@ class Mlp2SplitFn(torch.autograd.Function):
         dtype = w1t.numpy().dtype
         ya = np.empty((xac.shape[0], n_a), dtype=dtype)
         yb = np.empty((xac.shape[0], w2c.shape[0] - n_a), dtype=dtype)
-        _forward_split(xac.numpy(), xbc.numpy(), w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), ya, yb)
+        ctx.mask = None
+        if keeps_mask(ctx.needs_input_grad[:2], ctx.needs_input_grad[2:4]):
+            ctx.mask = np.empty((xac.shape[0], w1t.shape[1]), dtype=np.uint8)
+            _forward_split_mask(xac.numpy(), xbc.numpy(), w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), ya, yb,
+                                ctx.mask)
+        else:
+            _forward_split(xac.numpy(), xbc.numpy(), w1t.numpy(), w2c.numpy(), block_rows(w1t, w2c), ya, yb)
         ctx.save_for_backward(xac, xbc, w1t, w2c, xa, xb, w1, w2)
         ctx.n_own, ctx.args = 4, (n_a,)
         return torch.from_numpy(ya), torch.from_numpy(yb)
@@ -306,9 +417,15 @@ class Mlp2SplitFn(torch.autograd.Function):
         dtype = w1t.numpy().dtype
         w1p = padded_w1(w1t.numpy())
         block = backward_block_rows(w1t.shape[0], n_hid, n_out)
-        n_blocks = (n + block - 1) // block if need_w else 0
         gxa = np.empty((n if need_xa else 0, xac.shape[1]), dtype=dtype)
         gxb = np.empty((n if need_xb else 0, xbc.shape[1]), dtype=dtype)
+        if ctx.mask is not None:  # only input gradients, from the forward's ReLU mask
+            gya_np, gyb_np = (g.detach().to(w1t.dtype).contiguous().numpy() for g in (gya, gyb))
+            _backward_split_mask(ctx.mask, w1p, w2c.numpy(), gya_np, gyb_np, block, xac.shape[1], w1t.shape[0],
+                                 need_xa, need_xb, tiny_of(dtype), gxa, gxb)
+            return (torch.from_numpy(gxa) if need_xa else None, torch.from_numpy(gxb) if need_xb else None, None, None,
+                    None)
+        n_blocks = (n + block - 1) // block if need_w else 0
         gw1t = np.zeros((n_blocks, w1t.shape[0], n_hid), dtype=dtype)
         gw2 = np.zeros((n_blocks, n_out, n_hid), dtype=dtype)
         gya_np, gyb_np = (g.detach().to(w1t.dtype).contiguous().numpy() for g in (gya, gyb))

@@ -4,10 +4,12 @@ The tri-plane and TensoRF fields decode with this MLP (7 -> 32 -> 32 -> 1..3 at 
 decoder's kernel (``fields.kernels.mlp``) does, the numba kernels cut the samples into blocks (``mlp.block_rows``:
 256 samples for the 32 x 32 middle layer), run each block's matrix products through BLAS (``np.dot``) and the biases,
 ReLUs and ReLU masks in place on the block, so a block's two (block, 32) hidden arrays stay in cache; the backward
-recomputes them instead of storing them. The reference is ``mlp3_torch``; ``mlp3`` dispatches. Results do not depend
-on the thread count: every block is one set of BLAS calls no larger than OpenBLAS's single-thread size (a larger
-product inside the parallel loop would start OpenBLAS's own threads) and the weight and bias gradients' per-block
-partial sums are added in block order.
+recomputes them instead of storing them, except where only the input needs a gradient (tracking: the map is frozen),
+whose forward keeps both ReLU masks, one byte per unit and sample, for the backward to read (``mlp.KEEP_MASK``
+switches both decoders' masks; the same values either way). The reference is ``mlp3_torch``; ``mlp3`` dispatches.
+Results do not depend on the thread count: every block is one set of BLAS calls no larger than OpenBLAS's
+single-thread size (a larger product inside the parallel loop would start OpenBLAS's own threads) and the weight and
+bias gradients' per-block partial sums are added in block order.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from inrslam.fields.kernels.mlp import (
     FASTMATH,
     blas_fits,
     block_rows,
+    keeps_mask,
     relu_inplace,
     relu_mask_inplace,
     resolve_backend,
@@ -70,6 +73,68 @@ def _forward(x, w1t, b1, w2t, b2, w3t, b3, block, out):  # pragma: no cover - nu
         y = np.dot(a2, w3t)
         _add_bias(y, b3)
         out[n0:n1] = y
+
+
+@njit(inline="always", cache=True, fastmath=FASTMATH)
+def _relu_keep_mask(h, mb):  # pragma: no cover - numba
+    """h (m, H) <- relu(h), and mb (m, H) uint8 <- 0 where the pre-activation is <= 0 (where `relu_mask_inplace`
+    zeroes the gradient; a NaN passes), else 1."""
+    for k in range(h.shape[0]):
+        for j in range(h.shape[1]):
+            if h[k, j] <= 0.0:
+                h[k, j] = 0.0
+                mb[k, j] = 0
+            else:
+                mb[k, j] = 1
+
+
+@njit(inline="always", cache=True, fastmath=FASTMATH)
+def _zero_where_masked(g, mb):  # pragma: no cover - numba
+    """g (m, H) <- 0 where mb == 0."""
+    for k in range(g.shape[0]):
+        for j in range(g.shape[1]):
+            if mb[k, j] == 0:
+                g[k, j] = 0.0
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def _forward_mask(x, w1t, b1, w2t, b2, w3t, b3, block, out, m1, m2):  # pragma: no cover - numba
+    """`_forward`, also writing the two ReLU masks m1 (N, H1), m2 (N, H2) (`_relu_keep_mask`)."""
+    n_pts = x.shape[0]
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
+        a1 = np.dot(x[n0:n1], w1t)
+        _add_bias(a1, b1)
+        _relu_keep_mask(a1, m1[n0:n1])
+        a2 = np.dot(a1, w2t)
+        _add_bias(a2, b2)
+        _relu_keep_mask(a2, m2[n0:n1])
+        y = np.dot(a2, w3t)
+        _add_bias(y, b3)
+        out[n0:n1] = y
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def _backward_mask(m1, m2, w1t, w2t, w3t, gy, block, tiny, gx):  # pragma: no cover - numba
+    """The input gradient gx (N, I) of `_backward` from the forward's ReLU masks instead of recomputed hidden
+    layers: the same products on the same blocks, so the same values."""
+    n_pts = gy.shape[0]
+    w3 = np.ascontiguousarray(w3t.T)
+    w2 = np.ascontiguousarray(w2t.T)
+    w1 = np.ascontiguousarray(w1t.T)
+    for b in prange((n_pts + block - 1) // block):
+        n0 = b * block
+        n1 = min(n_pts, n0 + block)
+        gyb = gy[n0:n1].copy()
+        flush_inplace(gyb, tiny)
+        g2 = np.dot(gyb, w3)
+        _zero_where_masked(g2, m2[n0:n1])
+        g1 = np.dot(g2, w2)
+        _zero_where_masked(g1, m1[n0:n1])
+        gxb = np.dot(g1, w1)
+        flush_inplace(gxb, tiny)
+        gx[n0:n1] = gxb
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -127,8 +192,14 @@ class Mlp3Fn(torch.autograd.Function):
         wt = [w.detach().t().contiguous() for w in (w1, w2, w3)]
         bs = [b.detach().contiguous() for b in (b1, b2, b3)]
         out = np.empty((xc.shape[0], w3.shape[0]), dtype=wt[0].numpy().dtype)
-        _forward(xc.numpy(), wt[0].numpy(), bs[0].numpy(), wt[1].numpy(), bs[1].numpy(), wt[2].numpy(),
-                 bs[2].numpy(), block_rows(*wt), out)
+        x_, (w1t, w2t, w3t), (b1_, b2_, b3_) = xc.numpy(), [w.numpy() for w in wt], [b.numpy() for b in bs]
+        ctx.masks = None
+        if keeps_mask(ctx.needs_input_grad[:1], ctx.needs_input_grad[1:]):
+            m1, m2 = (np.empty((xc.shape[0], w.shape[0]), dtype=np.uint8) for w in (w1, w2))
+            _forward_mask(x_, w1t, b1_, w2t, b2_, w3t, b3_, block_rows(*wt), out, m1, m2)
+            ctx.masks = (m1, m2)
+        else:
+            _forward(x_, w1t, b1_, w2t, b2_, w3t, b3_, block_rows(*wt), out)
         ctx.save_for_backward(xc, *wt, *bs, x, w1, b1, w2, b2, w3, b3)
         ctx.n_own, ctx.args = 7, ()
         return torch.from_numpy(out)
@@ -143,6 +214,12 @@ class Mlp3Fn(torch.autograd.Function):
         n, n_in = xc.shape
         h1, h2, n_out = w1t.shape[1], w2t.shape[1], w3t.shape[1]
         block = block_rows(w1t, w2t, w3t)
+        if ctx.masks is not None:  # only the input gradient, from the forward's ReLU masks
+            gx = np.empty((n, n_in), dtype=dtype)
+            m1, m2 = ctx.masks
+            gy_np = gy.detach().to(w1t.dtype).contiguous().numpy()
+            _backward_mask(m1, m2, w1t.numpy(), w2t.numpy(), w3t.numpy(), gy_np, block, tiny_of(dtype), gx)
+            return (torch.from_numpy(gx),) + (None,) * 6
         nb = (n + block - 1) // block if need_w else 0
         gx = np.empty((n if need_x else 0, n_in), dtype=dtype)
         parts = [np.zeros(s, dtype=dtype) for s in ((nb, n_in, h1), (nb, h1), (nb, h1, h2), (nb, h2), (nb, h2, n_out),
