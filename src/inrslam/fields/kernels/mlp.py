@@ -147,8 +147,9 @@ def _block_forward_mask(xb, w1t, w2t, mb):  # pragma: no cover - numba
     for k in range(h.shape[0]):
         for j in range(h.shape[1]):
             if h[k, j] <= 0.0:
-                h[k, j] = 0.0
                 mb[k, j] = 0
+                if h[k, j] < 0.0:  # as `relu_inplace`: a zero (of either sign) stays as it is
+                    h[k, j] = 0.0
             else:
                 mb[k, j] = 1
     return np.dot(h, w2t)

@@ -82,8 +82,9 @@ def _relu_keep_mask(h, mb):  # pragma: no cover - numba
     for k in range(h.shape[0]):
         for j in range(h.shape[1]):
             if h[k, j] <= 0.0:
-                h[k, j] = 0.0
                 mb[k, j] = 0
+                if h[k, j] < 0.0:  # as `relu_inplace`: a zero (of either sign) stays as it is
+                    h[k, j] = 0.0
             else:
                 mb[k, j] = 1
 
