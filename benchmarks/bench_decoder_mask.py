@@ -14,11 +14,9 @@ See docs/speed.md, "Fused grid decoders".
 from __future__ import annotations
 
 import argparse
-import time
-from collections.abc import Callable
 
 from bench_decoder_padding import pair_alone
-from iteration_setup import FUSED, add_map_arguments, interleaved, machine_line, paper_map
+from iteration_setup import add_map_arguments, fused_map, interleaved, module_switch
 
 
 def main() -> None:
@@ -27,16 +25,8 @@ def main() -> None:
     args = ap.parse_args()
     import inrslam.fields.kernels.mlp as mlp
 
-    def keep(on: bool) -> Callable[[], None]:
-        def setter() -> None:
-            mlp.KEEP_MASK = on
-        return setter
-
-    variants = {"recompute": keep(False), "mask": keep(True)}
-    t0 = time.perf_counter()
-    bench = paper_map(args.encoding, args.data, args.frames, FUSED)
-    print(machine_line(f"{args.data}, F={args.encoding}, paper settings + every fused kernel, median of {args.reps}; "
-                       f"map built in {time.perf_counter() - t0:.0f} s"))
+    variants = module_switch(mlp, "KEEP_MASK", {"recompute": False, "mask": True})
+    bench = fused_map(args)
     rows = [("tracking iteration", lambda: interleaved(bench.track_iter, variants, args.reps))]
     if args.encoding in ("dense", "hash"):
         rows.insert(0, ("pair alone (7 -> 64 -> 4), tracking batch, forward + input gradient",

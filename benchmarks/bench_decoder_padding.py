@@ -13,10 +13,9 @@ See docs/speed.md, "Fused grid decoders".
 from __future__ import annotations
 
 import argparse
-import time
 from collections.abc import Callable
 
-from iteration_setup import FUSED, add_map_arguments, interleaved, machine_line, paper_map
+from iteration_setup import add_map_arguments, fused_map, interleaved, module_switch
 
 
 def pair_alone(n: int, n_in: int, need_w: bool, reps: int, variants: dict[str, Callable[[], None]]) -> dict:
@@ -47,16 +46,8 @@ def main() -> None:
     args = ap.parse_args()
     import inrslam.fields.kernels.mlp as mlp
 
-    def pad(on: bool) -> Callable[[], None]:
-        def setter() -> None:
-            mlp.PAD_NARROW = on
-        return setter
-
-    variants = {"unpadded": pad(False), "padded": pad(True)}
-    t0 = time.perf_counter()
-    bench = paper_map(args.encoding, args.data, args.frames, FUSED)
-    print(machine_line(f"{args.data}, F={args.encoding}, paper settings + every fused kernel, median of {args.reps}; "
-                       f"map built in {time.perf_counter() - t0:.0f} s"))
+    variants = module_switch(mlp, "PAD_NARROW", {"unpadded": False, "padded": True})
+    bench = fused_map(args)
     for n, need_w, what in ((61440, False, "tracking batch, input gradient"),
                             (122880, True, "mapping batch, input and weight gradients")):
         ms = pair_alone(n, 7, need_w, args.reps, variants)

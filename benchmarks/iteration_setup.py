@@ -84,12 +84,30 @@ def paper_map(encoding: str, data: str, frames: int, overrides: Sequence[str] = 
     return IterationBench(cfg, model, track_iter, map_iter, map_rays, c2w)
 
 
+def fused_map(args: argparse.Namespace) -> IterationBench:
+    """`paper_map` with every fused kernel for `add_map_arguments`' options, after printing the benchmark's first line
+    (machine, scene, F, repetitions, the seconds the map took to build)."""
+    t0 = time.perf_counter()
+    bench = paper_map(args.encoding, args.data, args.frames, FUSED)
+    print(machine_line(f"{args.data}, F={args.encoding}, paper settings + every fused kernel, median of {args.reps}; "
+                       f"map built in {time.perf_counter() - t0:.0f} s"))
+    return bench
+
+
 def machine_line(what: str) -> str:
     """'# machine: ..., cores, torch ..., threads ...; <what>' for a benchmark's first line."""
     import torch
 
     return (f"# machine: {cpu_line()}, torch "
             f"{torch.__version__}, threads {torch.get_num_threads()}; {what}")
+
+
+def module_switch(module: Any, name: str, values: dict[str, Any]) -> dict[str, Callable[[], None]]:
+    """`interleaved`'s variants for a module-level switch: {label: a setter of module.<name> = value}, e.g.
+    `module_switch(mlp, "KEEP_MASK", {"recompute": False, "mask": True})`."""
+    def setter(value: Any) -> Callable[[], None]:
+        return lambda: setattr(module, name, value)
+    return {label: setter(value) for label, value in values.items()}
 
 
 def interleaved(step: Callable[[], None], variants: dict[str, Callable[[], None]], reps: int) -> dict[str, float]:

@@ -140,18 +140,33 @@ KEEP_MASK = True
 
 
 @njit(inline="always", cache=True, fastmath=FASTMATH)
-def _block_forward_mask(xb, w1t, w2t, mb):  # pragma: no cover - numba
-    """`_block_forward`, also writing mb (m, H) uint8: 0 where the pre-activation is <= 0 (where the backward's
-    `relu_mask_inplace` zeroes the gradient; a NaN passes), else 1."""
-    h = np.dot(xb, w1t)
+def relu_keep_mask(h, mb):  # pragma: no cover - numba
+    """h (m, H) <- relu(h) as `relu_inplace` does (a zero of either sign stays as it is), and mb (m, H) uint8 <- 0
+    where the pre-activation is <= 0 (where `relu_mask_inplace` zeroes the gradient; a NaN passes), else 1."""
     for k in range(h.shape[0]):
         for j in range(h.shape[1]):
             if h[k, j] <= 0.0:
                 mb[k, j] = 0
-                if h[k, j] < 0.0:  # as `relu_inplace`: a zero (of either sign) stays as it is
+                if h[k, j] < 0.0:
                     h[k, j] = 0.0
             else:
                 mb[k, j] = 1
+
+
+@njit(inline="always", cache=True, fastmath=FASTMATH)
+def zero_where_masked(g, mb):  # pragma: no cover - numba
+    """g (m, H) <- 0 where the ReLU mask mb (m, H) is 0 (`relu_keep_mask`)."""
+    for k in range(g.shape[0]):
+        for j in range(g.shape[1]):
+            if mb[k, j] == 0:
+                g[k, j] = 0.0
+
+
+@njit(inline="always", cache=True, fastmath=FASTMATH)
+def _block_forward_mask(xb, w1t, w2t, mb):  # pragma: no cover - numba
+    """`_block_forward`, also writing the ReLU mask mb (m, H) (`relu_keep_mask`)."""
+    h = np.dot(xb, w1t)
+    relu_keep_mask(h, mb)
     return np.dot(h, w2t)
 
 
@@ -161,10 +176,7 @@ def _block_backward_mask(gyb, mb, w1p, w2, tiny, n_in):  # pragma: no cover - nu
     instead of a recomputed hidden layer: the same products on the same blocks, so the same values."""
     flush_inplace(gyb, tiny)
     gh = np.dot(gyb, w2)
-    for k in range(gh.shape[0]):
-        for j in range(gh.shape[1]):
-            if mb[k, j] == 0:
-                gh[k, j] = 0.0
+    zero_where_masked(gh, mb)
     gxp = np.dot(gh, w1p)
     flush_inplace(gxp, tiny)
     return gxp[:, :n_in]

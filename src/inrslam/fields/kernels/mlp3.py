@@ -25,8 +25,10 @@ from inrslam.fields.kernels.mlp import (
     block_rows,
     keeps_mask,
     relu_inplace,
+    relu_keep_mask,
     relu_mask_inplace,
     resolve_backend,
+    zero_where_masked,
 )
 from inrslam.fields.kernels.subnormal import flush_inplace, tiny_of
 
@@ -75,42 +77,19 @@ def _forward(x, w1t, b1, w2t, b2, w3t, b3, block, out):  # pragma: no cover - nu
         out[n0:n1] = y
 
 
-@njit(inline="always", cache=True, fastmath=FASTMATH)
-def _relu_keep_mask(h, mb):  # pragma: no cover - numba
-    """h (m, H) <- relu(h), and mb (m, H) uint8 <- 0 where the pre-activation is <= 0 (where `relu_mask_inplace`
-    zeroes the gradient; a NaN passes), else 1."""
-    for k in range(h.shape[0]):
-        for j in range(h.shape[1]):
-            if h[k, j] <= 0.0:
-                mb[k, j] = 0
-                if h[k, j] < 0.0:  # as `relu_inplace`: a zero (of either sign) stays as it is
-                    h[k, j] = 0.0
-            else:
-                mb[k, j] = 1
-
-
-@njit(inline="always", cache=True, fastmath=FASTMATH)
-def _zero_where_masked(g, mb):  # pragma: no cover - numba
-    """g (m, H) <- 0 where mb == 0."""
-    for k in range(g.shape[0]):
-        for j in range(g.shape[1]):
-            if mb[k, j] == 0:
-                g[k, j] = 0.0
-
-
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _forward_mask(x, w1t, b1, w2t, b2, w3t, b3, block, out, m1, m2):  # pragma: no cover - numba
-    """`_forward`, also writing the two ReLU masks m1 (N, H1), m2 (N, H2) (`_relu_keep_mask`)."""
+    """`_forward`, also writing the two ReLU masks m1 (N, H1), m2 (N, H2) (`mlp.relu_keep_mask`)."""
     n_pts = x.shape[0]
     for b in prange((n_pts + block - 1) // block):
         n0 = b * block
         n1 = min(n_pts, n0 + block)
         a1 = np.dot(x[n0:n1], w1t)
         _add_bias(a1, b1)
-        _relu_keep_mask(a1, m1[n0:n1])
+        relu_keep_mask(a1, m1[n0:n1])
         a2 = np.dot(a1, w2t)
         _add_bias(a2, b2)
-        _relu_keep_mask(a2, m2[n0:n1])
+        relu_keep_mask(a2, m2[n0:n1])
         y = np.dot(a2, w3t)
         _add_bias(y, b3)
         out[n0:n1] = y
@@ -130,9 +109,9 @@ def _backward_mask(m1, m2, w1t, w2t, w3t, gy, block, tiny, gx):  # pragma: no co
         gyb = gy[n0:n1].copy()
         flush_inplace(gyb, tiny)
         g2 = np.dot(gyb, w3)
-        _zero_where_masked(g2, m2[n0:n1])
+        zero_where_masked(g2, m2[n0:n1])
         g1 = np.dot(g2, w2)
-        _zero_where_masked(g1, m1[n0:n1])
+        zero_where_masked(g1, m1[n0:n1])
         gxb = np.dot(g1, w1)
         flush_inplace(gxb, tiny)
         gx[n0:n1] = gxb
