@@ -313,7 +313,9 @@ def blas_fits(*weights) -> bool:
 
 def keeps_mask(need_inputs, need_weights) -> bool:
     """Whether a fused decoder's forward keeps the ReLU mask (`KEEP_MASK`): some input needs a gradient and no weight
-    does (tracking), so the backward computes the input gradient alone, from the mask."""
+    does (tracking), so the backward computes the input gradient alone, from the mask. (A Function's forward cannot
+    tell whether a graph is being recorded, so a forward under ``no_grad`` on such inputs also writes a mask, which
+    is dropped with the call: tracking's one final evaluation per frame.)"""
     return KEEP_MASK and any(need_inputs) and not any(need_weights)
 
 
