@@ -26,7 +26,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from inrslam.machine import cpu_line
+from iteration_setup import machine_line
 
 # both map the same depth: `ehe` maps depth noisier than 2 mm at 1 m after the bilateral filter, so the paper system
 # is given the same filtered depth (its own loop otherwise unchanged)
@@ -66,12 +66,10 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="keep the run directories here (default: a temporary folder)")
     ap.add_argument("overrides", nargs="*", help="KEY=VALUE overrides for both runs")
     args = ap.parse_args()
-    import torch
 
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench_ehe_"))
-    print(f"# machine: {cpu_line()}, torch "
-          f"{torch.__version__}; data {args.data}, {args.frames} frames, {args.threads or 'all'} thread(s); "
-          f"runs in {root}")
+    print(machine_line(f"data {args.data}, {args.frames} frames, {args.threads or 'all'} thread(s); runs in {root}",
+                       threads=False))
     rows = {}
     for k, (name, sys_args) in enumerate(SYSTEMS.items()):
         rows[name] = run_one(sys_args, root / f"run{k}", args.data, args.dataset, args.frames,

@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from inrslam.machine import cpu_line
+from iteration_setup import machine_line
 
 PRESETS = ["paper", "accurate", "gicp"]
 
@@ -51,10 +51,8 @@ def main() -> None:
     ap.add_argument("--data", default="builtin:room")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides for every preset")
     args = ap.parse_args()
-    import torch
 
-    print(f"# machine: {cpu_line()}, torch "
-          f"{torch.__version__}; data {args.data}, {args.frames} frames")
+    print(machine_line(f"data {args.data}, {args.frames} frames", threads=False))
     print(f"{'preset':<11} {'F':<9} {'G':<8} {'track ms/frame':>15} {'map ms/call':>12} {'s/frame':>8} {'init s':>7}")
     for enc in args.encodings:
         rows = {}

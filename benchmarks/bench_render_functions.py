@@ -17,8 +17,9 @@ from __future__ import annotations
 import argparse
 import time
 
-import inrslam  # noqa: F401  (first: sets the OpenMP wait policy before torch loads its runtime)
-from inrslam.machine import cpu_line
+from iteration_setup import machine_line
+
+import inrslam  # noqa: F401  (sets the OpenMP wait policy before torch loads its runtime)
 
 
 def run_one(preset: str, encoding: str, render: str, frames: int, init_iters: int, data: str, threads: int
@@ -58,11 +59,10 @@ def main() -> None:
     ap.add_argument("--data", default="builtin:room")
     ap.add_argument("--threads", type=int, default=0, help="torch/numba threads (0 = all cores)")
     args = ap.parse_args()
-    import torch
 
-    print(f"# machine: {cpu_line()}, torch "
-          f"{torch.__version__}; {args.preset}, {args.data}, {args.frames} frames, init {args.init_iters} iters, "
-          f"threads {args.threads or 'all'}, OpenMP wait {inrslam.omp_env.wait_policy()['policy']}")
+    policy = inrslam.omp_env.wait_policy()["policy"]
+    print(machine_line(f"{args.preset}, {args.data}, {args.frames} frames, init {args.init_iters} iters, threads "
+                       f"{args.threads or 'all'}, OpenMP wait {policy}", threads=False))
     for enc in args.encodings:  # warm-up of every F x G: numba compiles (or loads) each F's kernels on first use,
         for render in args.renders:  # which would otherwise land in the init time of that F's first render
             run_one(args.preset, enc, render, 2, 2, args.data, args.threads)

@@ -18,7 +18,7 @@ import statistics
 import threading
 import time
 
-from inrslam.machine import cpu_line
+from iteration_setup import machine_line
 
 
 def make_system(preset: str, frames: int, data: str):
@@ -96,10 +96,8 @@ def main() -> None:
     ap.add_argument("--mesh-every", type=int, default=20, help="as inrslam run --viewer-mesh-every")
     ap.add_argument("--repeats", type=int, default=1, help="pairs of runs (plain, viewer)")
     args = ap.parse_args()
-    import torch
 
-    print(f"# machine: {cpu_line()}, torch "
-          f"{torch.__version__}; {args.data}, {args.frames} frames, mesh every {args.mesh_every}", flush=True)
+    print(machine_line(f"{args.data}, {args.frames} frames, mesh every {args.mesh_every}", threads=False), flush=True)
     ratios = {}
     for preset in args.presets:
         timed_run(preset, 3, args.data, viewer=False, mesh_every=args.mesh_every)  # warm-up: JIT, scene cache

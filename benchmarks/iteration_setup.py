@@ -2,7 +2,8 @@
 `bench_decoder_pair.py`, `bench_render_kernel.py`): a `paper` map built over a few frames of a scene, and one
 tracking and one mapping iteration (loss forward + backward, no optimiser step) on rays fixed once, so that code
 variants can be timed interleaved in one process on the same work; the benchmark config of a `paper` run
-(`paper_config`, also for `bench_slam.py` and `profile_frame.py`). Not a benchmark itself."""
+(`paper_config`, also for `bench_slam.py` and `profile_frame.py`); every benchmark's first line (`machine_line`).
+Not a benchmark itself."""
 
 from __future__ import annotations
 
@@ -94,12 +95,13 @@ def fused_map(args: argparse.Namespace) -> IterationBench:
     return bench
 
 
-def machine_line(what: str) -> str:
-    """'# machine: ..., cores, torch ..., threads ...; <what>' for a benchmark's first line."""
+def machine_line(what: str, threads: bool = True) -> str:
+    """'# machine: ..., cores, torch ...[, threads ...]; <what>' for a benchmark's first line (`threads`: torch's
+    thread count of this process; off where the benchmark runs its work elsewhere or says its threads in `what`)."""
     import torch
 
-    return (f"# machine: {cpu_line()}, torch "
-            f"{torch.__version__}, threads {torch.get_num_threads()}; {what}")
+    count = f", threads {torch.get_num_threads()}" if threads else ""
+    return f"# machine: {cpu_line()}, torch {torch.__version__}{count}; {what}"
 
 
 def module_switch(module: Any, name: str, values: dict[str, Any]) -> dict[str, Callable[[], None]]:
