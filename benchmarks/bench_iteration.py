@@ -10,8 +10,9 @@ Rows: `paper` as it runs (fused lookups, numba sampler: bit-identical to the tor
 (the reference, for its share), then `field.decoder_kernel=numba`, then also `loss.kernel=numba`. For the F with
 planes (tri-plane, TensoRF, the hybrids) also `paper` and every fused kernel with the per-level plane sums / plane x
 line products in autograd (the references of `fields.kernels.combine`, bit-identical to the kernels), for their
-share. For the MLP (whose iteration is its trunk's matrix products, which no fused kernel shortens) also `paper`
-with `field.mlp.precision=bfloat16` (its hidden layers and heads under bfloat16 autocast).
+share. For the MLP the `field.decoder_kernel=numba` row runs its float32 network in blocks of samples
+(`fields.kernels.blocked_mlp`), and two more rows give `paper` with `field.mlp.precision=bfloat16` (its hidden layers
+and heads under bfloat16 autocast).
 
     python benchmarks/bench_iteration.py --encoding mlp --reps 5
 """

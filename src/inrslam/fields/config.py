@@ -69,7 +69,8 @@ class FieldConfig:
     truncation: float = 0.1  # SDF truncation T, metres (field SDF is in units of T)
     kernel: KernelChoice = KernelChoice.AUTO  # lookup implementation: auto | torch | numba
     decoder_kernel: KernelChoice = KernelChoice.TORCH  # grid and plane decoders: torch (autograd) | numba (fused,
-    # CPU) | auto (numba on CPU); the MLP representation always uses torch (docs/speed.md)
+    # CPU) | auto (numba on CPU); for the MLP representation numba / auto run its float32 network in blocks of
+    # samples (`kernels.blocked_mlp`; docs/speed.md)
     faithful: bool = False  # reproduce the original's quirks ([0,1] planes, ΣP⊙Σℓ TensoRF, cubic tcnn grids)
     grid_init: float = 1e-4  # grid features init U(−grid_init, grid_init)
     plane_init_std: float = 0.01  # plane / line features init N(0, plane_init_std²)

@@ -21,7 +21,8 @@ from inrslam.errors import ConfigError
 from inrslam.fields.config import Coupling, FieldConfig, KernelChoice, MlpPrecision
 from inrslam.fields.encoders import GridEncoder, TableEncoder, TensoRFEncoder, TriPlaneEncoder
 from inrslam.fields.gamma import FourierFeatures, make_gamma
-from inrslam.fields.kernels.mlp import mlp2, mlp2_pair
+from inrslam.fields.kernels.blocked_mlp import MlpScratch, blocked_mlp
+from inrslam.fields.kernels.mlp import mlp2, mlp2_pair, resolve_backend
 from inrslam.fields.kernels.mlp3 import mlp3
 from inrslam.fields.registry import ENCODINGS
 from inrslam.fields.resolution import plane_sizes
@@ -210,6 +211,7 @@ class MLPField(Field):
         self.rgb_head = nn.Sequential(nn.Linear(rgb_in, h), nn.ReLU(), nn.Linear(h, 3))
         self.precision = MlpPrecision(cfg.mlp.precision)
         self._bf16_checked = ""  # device type on which bfloat16 arithmetic was found available (`check_bfloat16`)
+        self._scratch = MlpScratch()  # buffers of the blocked network (`field.decoder_kernel` auto / numba)
 
     def _trunk(self, trunk: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
         """trunk(x); in bfloat16 mode its first layer runs in float32 (it reads the Fourier features, whose phases
@@ -220,7 +222,44 @@ class MLPField(Field):
             h = trunk[1](trunk[0](x))
         return trunk[2:](h)
 
+    def _blocked(self, p: torch.Tensor) -> bool:
+        """Whether `field.decoder_kernel` runs this query through the blocked network (`kernels.blocked_mlp`): float32
+        layers (bfloat16 keeps its autocast modules), CPU tensors of the parameters' dtype, no second-order backward
+        to follow."""
+        if self.precision is not MlpPrecision.FLOAT32:
+            return False
+        fusable = p.device.type == "cpu" and p.dtype == self.freq.B.dtype and p.dtype in (torch.float32, torch.float64)
+        return resolve_backend(self.decoder_backend, fusable) == "numba"
+
+    def _net(self, p: torch.Tensor, *modules: nn.Sequential) -> torch.Tensor:
+        """sin(p̂ᵀB) through the given Sequentials one after the other, as one blocked network: (N, out)."""
+        params = [t for mod in modules for layer in mod if isinstance(layer, nn.Linear)
+                  for t in (layer.weight, layer.bias)]
+        return blocked_mlp(p, params, self._scratch, "numba", freq=self.freq.B)
+
+    def _decode_blocked(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
+        """`_decode` through `kernels.blocked_mlp`: the SDF path (Fourier features, trunk, SDF head) as one network;
+        with coupled_base colour both heads in it side by side (first layers stacked, second block-diagonal)."""
+        if need_rgb and self.coupling is Coupling.COUPLED_BASE:
+            s1, s2, r1, r2 = (cast(nn.Linear, m[k]) for m in (self.sdf_head, self.rgb_head) for k in (0, 2))
+            params = [t for layer in self.trunk if isinstance(layer, nn.Linear) for t in (layer.weight, layer.bias)]
+            params += [torch.cat([s1.weight, r1.weight]), torch.cat([s1.bias, r1.bias]),
+                       torch.block_diag(s2.weight, r2.weight), torch.cat([s2.bias, r2.bias])]
+            out = blocked_mlp(p, params, self._scratch, "numba", freq=self.freq.B)
+            n_sdf = s2.weight.shape[0]
+            return FieldOutput(out[:, 0], out[:, n_sdf:])
+        h = self._net(p, self.trunk, self.sdf_head)
+        if not need_rgb:
+            rgb = None
+        elif self.coupling is Coupling.COUPLED:
+            rgb = self.rgb_head(torch.cat([h[:, 1:], self.freq(p)], dim=-1))
+        else:  # decoupled
+            rgb = self._net(p, cast(nn.Sequential, self.rgb_trunk), self.rgb_head)
+        return FieldOutput(h[:, 0], rgb)
+
     def _decode(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
+        if self._blocked(p):
+            return self._decode_blocked(p, need_rgb)
         x = self.freq(p)
         low = self.precision is MlpPrecision.BFLOAT16
         if low and x.device.type != self._bf16_checked:
