@@ -244,3 +244,23 @@ def test_a_failed_write_is_one_line_naming_the_file(monkeypatch, capsys):
     assert cli.main(["scenes"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("inrslam scenes: error: runs/x/metrics.json: File too large")
+
+
+def test_outputs_line_lists_only_files_the_run_wrote(tmp_path):
+    """A run whose map held no surface writes no mesh.ply: the closing line must not list one."""
+    from rich.console import Console
+
+    from inrslam.cli import _print_metrics
+
+    rd = write_fake_run(tmp_path / "run", "dense", "density", frames=4)
+    for name in ("trajectory.txt", "config.yaml"):
+        assert (rd / name).exists()
+    (rd / "mesh.ply").unlink(missing_ok=True)
+    console = Console(record=True, width=400)
+    _print_metrics(console, rd)
+    line = next(ln for ln in console.export_text().splitlines() if ln.startswith("Outputs in"))
+    assert "trajectory.txt" in line and "config.yaml" in line and "mesh.ply" not in line
+    (rd / "mesh.ply").write_text("ply\n")
+    console = Console(record=True, width=400)
+    _print_metrics(console, rd)
+    assert "mesh.ply" in next(ln for ln in console.export_text().splitlines() if ln.startswith("Outputs in"))

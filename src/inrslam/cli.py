@@ -488,7 +488,9 @@ def _print_metrics(console, run_dir: Path) -> None:
                       f"or slam.lost.recover=true")
     pictures = [p.name + ("/" if p.is_dir() else "") for p in (rd.trajectory_plot, rd.mesh_thumbnail, rd.renders)
                 if p.exists()]
-    console.print(f"Outputs in [bold]{run_dir}[/bold]: trajectory.txt, mesh.ply, metrics.json, log.jsonl, config.yaml"
+    outputs = [name for name in ("trajectory.txt", "mesh.ply", "metrics.json", "log.jsonl", "config.yaml")
+               if (run_dir / name).exists()]
+    console.print(f"Outputs in [bold]{run_dir}[/bold]: {', '.join(outputs)}"
                   + (f"; pictures: {', '.join(pictures)}" if pictures else ""))
 
 
