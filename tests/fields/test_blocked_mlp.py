@@ -195,6 +195,8 @@ def test_errors_name_the_problem():
     params, _, _ = _net([4, 8, 2], torch.float32)
     with pytest.raises(ValueError, match="do not chain"):
         blocked_mlp(torch.zeros(5, 3), params, MlpScratch(), "numba")
+    with pytest.raises(ValueError, match=r"freq \(4, 8\) must be \(3, F\)"):
+        blocked_mlp(torch.zeros(5, 3), params, MlpScratch(), "numba", freq=torch.zeros(4, 8))
     with pytest.raises(ValueError, match="weight, bias"):
         blocked_mlp(torch.zeros(5, 4), params[:3], MlpScratch(), "numba")
     with pytest.raises(ValueError, match="decoder kernel 'numba' needs CPU"):

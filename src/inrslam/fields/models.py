@@ -196,6 +196,8 @@ class MLPField(Field):
     """F = MLP (docs/spec.md §3.3): x = sin(p̂ᵀB) (93-d), trunk depth × width ReLU, SDF head width→h→1(+g).
 
     Colour: coupled_base reads the trunk output; coupled reads [g, x]; decoupled has its own trunk on x.
+    With `field.decoder_kernel` auto / numba, float32 queries on the CPU run as one blocked network
+    (`kernels.blocked_mlp`); `torch` (the `paper` preset) runs the modules themselves.
     """
 
     def __init__(self, cfg: FieldConfig, bounds: np.ndarray):
@@ -231,20 +233,24 @@ class MLPField(Field):
         fusable = p.device.type == "cpu" and p.dtype == self.freq.B.dtype and p.dtype in (torch.float32, torch.float64)
         return resolve_backend(self.decoder_backend, fusable) == "numba"
 
+    @staticmethod
+    def _linear_params(*modules: nn.Sequential) -> list[torch.Tensor]:
+        """(W1, b1, W2, b2, ...) of the Linear layers of these Sequentials, in order."""
+        return [t for mod in modules for layer in mod if isinstance(layer, nn.Linear)
+                for t in (layer.weight, layer.bias)]
+
     def _net(self, p: torch.Tensor, *modules: nn.Sequential) -> torch.Tensor:
         """sin(p̂ᵀB) through the given Sequentials one after the other, as one blocked network: (N, out)."""
-        params = [t for mod in modules for layer in mod if isinstance(layer, nn.Linear)
-                  for t in (layer.weight, layer.bias)]
-        return blocked_mlp(p, params, self._scratch, "numba", freq=self.freq.B)
+        return blocked_mlp(p, self._linear_params(*modules), self._scratch, "numba", freq=self.freq.B)
 
     def _decode_blocked(self, p: torch.Tensor, need_rgb: bool) -> FieldOutput:
         """`_decode` through `kernels.blocked_mlp`: the SDF path (Fourier features, trunk, SDF head) as one network;
         with coupled_base colour both heads in it side by side (first layers stacked, second block-diagonal)."""
         if need_rgb and self.coupling is Coupling.COUPLED_BASE:
             s1, s2, r1, r2 = (cast(nn.Linear, m[k]) for m in (self.sdf_head, self.rgb_head) for k in (0, 2))
-            params = [t for layer in self.trunk if isinstance(layer, nn.Linear) for t in (layer.weight, layer.bias)]
-            params += [torch.cat([s1.weight, r1.weight]), torch.cat([s1.bias, r1.bias]),
-                       torch.block_diag(s2.weight, r2.weight), torch.cat([s2.bias, r2.bias])]
+            heads = [torch.cat([s1.weight, r1.weight]), torch.cat([s1.bias, r1.bias]),  # first layers stacked
+                     torch.block_diag(s2.weight, r2.weight), torch.cat([s2.bias, r2.bias])]  # second block-diagonal
+            params = self._linear_params(self.trunk) + heads
             out = blocked_mlp(p, params, self._scratch, "numba", freq=self.freq.B)
             n_sdf = s2.weight.shape[0]
             return FieldOutput(out[:, 0], out[:, n_sdf:])

@@ -173,6 +173,8 @@ def blocked_mlp(x: torch.Tensor, params: Sequence[torch.Tensor], scratch: MlpScr
     if len(params) % 2 or not params or x.dim() != 2:
         raise ValueError(f"blocked_mlp: expected x (N, I) and (weight, bias) pairs, got x {tuple(x.shape)} and "
                          f"{len(params)} parameters")
+    if freq is not None and (freq.dim() != 2 or freq.shape[0] != x.shape[1]):
+        raise ValueError(f"blocked_mlp: freq {tuple(freq.shape)} must be ({x.shape[1]}, F) for x {tuple(x.shape)}")
     n_in = x.shape[1] if freq is None else freq.shape[1]
     for w_prev, w in zip((None, *weights[:-1]), weights):
         if w.shape[1] != (n_in if w_prev is None else w_prev.shape[0]):
