@@ -22,6 +22,7 @@ from inrslam.fields.config import Coupling, FieldConfig, KernelChoice, MlpPrecis
 from inrslam.fields.encoders import GridEncoder, TableEncoder, TensoRFEncoder, TriPlaneEncoder
 from inrslam.fields.gamma import FourierFeatures, make_gamma
 from inrslam.fields.kernels.blocked_mlp import MlpScratch, blocked_mlp
+from inrslam.fields.kernels.function import cpu_floats
 from inrslam.fields.kernels.mlp import mlp2, mlp2_pair, resolve_backend
 from inrslam.fields.kernels.mlp3 import mlp3
 from inrslam.fields.registry import ENCODINGS
@@ -230,8 +231,7 @@ class MLPField(Field):
         to follow."""
         if self.precision is not MlpPrecision.FLOAT32:
             return False
-        fusable = p.device.type == "cpu" and p.dtype == self.freq.B.dtype and p.dtype in (torch.float32, torch.float64)
-        return resolve_backend(self.decoder_backend, fusable) == "numba"
+        return resolve_backend(self.decoder_backend, cpu_floats(p, self.freq.B)) == "numba"
 
     @staticmethod
     def _linear_params(*modules: nn.Sequential) -> list[torch.Tensor]:

@@ -27,7 +27,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from inrslam.fields.kernels.function import fused_backward
+from inrslam.fields.kernels.function import cpu_floats, fused_backward
 from inrslam.fields.kernels.mlp import resolve_backend
 from inrslam.fields.kernels.pool import BufferPool
 
@@ -116,7 +116,7 @@ class BlockedMlpFn(torch.autograd.Function):
                     a.relu_()
                 h = a
         ctx.hidden, ctx.feat = (hidden, feat if keep_feat else None) if keep else (None, None)
-        ctx.scratch, ctx.rows, ctx.freq = scratch, rows, freq
+        ctx.rows = rows
         ctx.save_for_backward(xc, *weights, x, *params)
         ctx.n_own, ctx.args = 1 + depth, (freq, scratch)
         return out
@@ -126,7 +126,7 @@ class BlockedMlpFn(torch.autograd.Function):
     def backward(ctx, g: torch.Tensor):
         saved = ctx.saved_tensors
         xc, weights = saved[0], saved[1:ctx.n_own]
-        hidden, feat, freq = ctx.hidden, ctx.feat, ctx.freq
+        hidden, feat, (freq, scratch) = ctx.hidden, ctx.feat, ctx.args
         depth = len(weights)
         need = ctx.needs_input_grad
         need_x = need[0]
@@ -136,7 +136,7 @@ class BlockedMlpFn(torch.autograd.Function):
         low = 0 if need_x else next((i for i in range(depth) if need_w[i] or need_b[i]), depth)
         g = g.detach().to(xc.dtype).contiguous()
         n, rows = xc.shape[0], ctx.rows
-        gx = ctx.scratch.take(n, xc.shape[1], xc.dtype) if need_x else None
+        gx = scratch.take(n, xc.shape[1], xc.dtype) if need_x else None
         gw = [torch.zeros_like(w) if need_w[i] else None for i, w in enumerate(weights)]
         gb = [torch.zeros(w.shape[0], dtype=w.dtype) if need_b[i] else None for i, w in enumerate(weights)]
         for s in range(0, n, rows):
@@ -180,9 +180,6 @@ def blocked_mlp(x: torch.Tensor, params: Sequence[torch.Tensor], scratch: MlpScr
         if w.shape[1] != (n_in if w_prev is None else w_prev.shape[0]):
             raise ValueError(f"blocked_mlp: layer shapes {[tuple(w.shape) for w in weights]} do not chain from an "
                              f"input {n_in} wide")
-    tensors = [x, *params] + ([] if freq is None else [freq])
-    fusable = all(t.device.type == "cpu" and t.dtype == x.dtype for t in tensors) and x.dtype in (torch.float32,
-                                                                                                   torch.float64)
-    if resolve_backend(backend, fusable) == "torch":
+    if resolve_backend(backend, cpu_floats(x, *params, *([] if freq is None else [freq]))) == "torch":
         return blocked_mlp_torch(x, params, freq)
     return BlockedMlpFn.apply(x, *params, freq, scratch)
