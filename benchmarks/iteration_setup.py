@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from inrslam.machine import cpu_line
+from inrslam.machine import cpu_line, openblas_core
 
 #: Overrides that turn on every fused CPU kernel besides the lookups (which `paper` runs fused already).
 FUSED = ["field.decoder_kernel=numba", "loss.kernel=numba", "render.kernel=numba"]
@@ -96,12 +96,18 @@ def fused_map(args: argparse.Namespace) -> IterationBench:
 
 
 def machine_line(what: str, threads: bool = True) -> str:
-    """'# machine: ..., cores, torch ...[, threads ...]; <what>' for a benchmark's first line (`threads`: torch's
-    thread count of this process; off where the benchmark runs its work elsewhere or says its threads in `what`)."""
+    """'# machine: ..., cores, torch ..., OpenBLAS kernels ...[, threads ...]; <what>' for a benchmark's first line
+    (`threads`: torch's thread count of this process; off where the benchmark runs its work elsewhere or says its
+    threads in `what`). The OpenBLAS kernel set decides the fused decoders' speed (docs/speed.md, "Which BLAS
+    kernels"), and `OPENBLAS_CORETYPE` overrides it: the line names it, and says when the variable chose it."""
+    import os
+
     import torch
 
+    core = openblas_core() or "unknown"
+    forced = " (OPENBLAS_CORETYPE)" if os.environ.get("OPENBLAS_CORETYPE") else ""
     count = f", threads {torch.get_num_threads()}" if threads else ""
-    return f"# machine: {cpu_line()}, torch {torch.__version__}{count}; {what}"
+    return f"# machine: {cpu_line()}, torch {torch.__version__}, OpenBLAS kernels {core}{forced}{count}; {what}"
 
 
 def module_switch(module: Any, name: str, values: dict[str, Any]) -> dict[str, Callable[[], None]]:

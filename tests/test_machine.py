@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
+import sys
+
+import pytest
 
 from inrslam import machine
 
@@ -47,10 +51,32 @@ def test_last_level_cache_is_the_highest_level(tmp_path):
 
 def test_machine_and_cpu_line_describe_this_process():
     info = machine.machine()
-    assert set(info) == {"cpu", "cores", "usable_cores", "last_level_cache", "memory_gib", "system"}
+    assert set(info) == {"cpu", "cores", "usable_cores", "last_level_cache", "memory_gib", "system", "openblas_core"}
     assert info["cores"] == os.cpu_count() and 1 <= info["usable_cores"] <= info["cores"]
     assert info["system"] == platform.system() and info["cpu"]
     line = machine.cpu_line()
     assert line.startswith(f"{info['cpu']}, {info['cores']} cores")
     if info["last_level_cache"]:
         assert line.endswith(f"last-level cache {info['last_level_cache']}")
+
+
+def _openblas_core_in_child(env: dict) -> str:
+    code = "from inrslam.machine import openblas_core; print(openblas_core())"
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def test_openblas_core_names_the_kernel_set_openblas_coretype_forces():
+    """OpenBLAS reads OPENBLAS_CORETYPE when it loads: a child process started with it set reports that kernel set
+    (the machine's own choice otherwise, e.g. SkylakeX on an AVX-512 CPU)."""
+    if machine.openblas_core() is None:
+        pytest.skip("no OpenBLAS whose kernel name can be read (SciPy's wheels bring one)")
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_CORETYPE", "OPENBLAS_VERBOSE")}
+    for core in ("Haswell", "Sandybridge"):
+        assert _openblas_core_in_child({**env, "OPENBLAS_CORETYPE": core}) == core
+    assert _openblas_core_in_child(env)  # unset: whatever OpenBLAS picked for this CPU, named
+
+
+def test_openblas_core_reads_none_without_a_loaded_openblas():
+    maps = "7f00-7f01 r-xp 00000000 00:00 0 /usr/lib/x86_64-linux-gnu/libc.so.6\n"
+    assert machine.openblas_core(maps) is None

@@ -59,10 +59,47 @@ def memory_gib(meminfo: str | None = None) -> float | None:
     return None
 
 
+#: Names under which OpenBLAS builds export their kernel name (plain, and SciPy's / NumPy's prefixed wheels).
+_CORENAME_SYMBOLS = ("openblas_get_corename", "scipy_openblas_get_corename", "scipy_openblas_get_corename64_",
+                     "openblas_get_corename64_")
+
+
+def openblas_core(maps: str | None = None) -> str | None:
+    """The kernel set ('Haswell', 'SkylakeX', ...) of the OpenBLAS that the fused decoders' products run on (SciPy's,
+    which numba's ``np.dot`` calls), or None where it cannot be read (no OpenBLAS, not Linux). It decides their
+    speed: on a CPU with AVX-512 the SkylakeX kernels run the decoders' small products 2-4x faster than Haswell's,
+    and ``OPENBLAS_CORETYPE`` overrides OpenBLAS's own choice (docs/speed.md, "Which BLAS kernels"). `maps`: the text
+    of /proc/self/maps, for tests."""
+    import ctypes
+
+    try:
+        import scipy.linalg.cython_blas  # noqa: F401  (loads SciPy's OpenBLAS, as numba does for np.dot)
+    except ImportError:
+        return None
+    text = _read(Path("/proc/self/maps")) if maps is None else maps
+    paths = sorted({line.split()[-1] for line in (text or "").splitlines()
+                    if "openblas" in line.rsplit("/", 1)[-1].lower() and "/" in line})
+    paths.sort(key=lambda p: "scipy.libs" not in p)  # SciPy's own first: the one numba calls
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for name in _CORENAME_SYMBOLS:
+            fn = getattr(lib, name, None)
+            if fn is not None:
+                fn.restype = ctypes.c_char_p
+                core = fn()
+                return core.decode(errors="replace").strip() if core else None
+    return None
+
+
 def machine() -> dict:
-    """{"cpu": model, "cores": os.cpu_count(), "usable_cores", "last_level_cache", "memory_gib", "system"}."""
+    """{"cpu": model, "cores": os.cpu_count(), "usable_cores", "last_level_cache", "memory_gib", "system",
+    "openblas_core"}."""
     return {"cpu": cpu_model(), "cores": os.cpu_count(), "usable_cores": len(cpu_set()),
-            "last_level_cache": last_level_cache(), "memory_gib": memory_gib(), "system": platform.system()}
+            "last_level_cache": last_level_cache(), "memory_gib": memory_gib(), "system": platform.system(),
+            "openblas_core": openblas_core()}
 
 
 def cpu_line() -> str:

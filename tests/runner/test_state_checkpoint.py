@@ -169,6 +169,24 @@ def test_config_yaml_records_the_thread_count_used(tmp_path):
     assert yaml.safe_load(RunDir(tmp_path / "r").config.read_text())["threads"] == resolve_threads(0) >= 1
 
 
+def test_run_info_records_the_openblas_kernels_and_a_resume_on_others_warns(tmp_path):
+    """The fused decoders round by the OpenBLAS kernel set: run_info.json records it, and resuming on another one
+    (OPENBLAS_CORETYPE changed in between) warns that the result will not be an uninterrupted run's bit for bit."""
+    from inrslam.errors import InrslamWarning
+    from inrslam.machine import openblas_core
+    from inrslam.runner import _warn_other_blas
+
+    run_slam(tiny_cfg(["data.max_frames=2"]), tmp_path / "r")
+    started = json.loads(RunDir(tmp_path / "r").run_info.read_text())["machine"]["openblas_core"]
+    assert started == openblas_core()
+    if started is None:
+        pytest.skip("no OpenBLAS whose kernel name can be read (SciPy's wheels bring one)")
+    assert _warn_other_blas(tmp_path / "r", current=started) is None  # the same kernels: silent
+    other = "Sandybridge" if started != "Sandybridge" else "Haswell"
+    with pytest.warns(InrslamWarning, match=f"started on OpenBLAS kernels {started} and resumes on {other}"):
+        assert "bit for bit" in _warn_other_blas(tmp_path / "r", current=other)
+
+
 @pytest.fixture
 def small_disk(tmp_path):
     """A 2 MiB tmpfs (needs the right to mount: root in a container), unmounted afterwards."""

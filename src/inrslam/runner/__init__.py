@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
 from inrslam.config.loader import dump_config, load_config
-from inrslam.errors import ConfigError, RunError
+from inrslam.errors import ConfigError, InrslamWarning, RunError
 from inrslam.interrupts import hold_interrupts, interrupt
 from inrslam.io.atomic import write_text
 from inrslam.io.rundir import RunDir
@@ -81,6 +82,7 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
         dataset = open_dataset(cfg.data)
         threads = _recorded_threads(run_dir) if not cfg.threads else None
         threads = threads or resolve_threads(cfg.threads)
+        _warn_other_blas(run_dir)
         with thread_scope(threads), load_guard():
             stage(log, f"building the map and loading the checkpoint {rd.checkpoint}")
             system = system_class(cfg)(cfg, dataset)
@@ -162,6 +164,23 @@ def _recorded_threads(run_dir: Path) -> int | None:
     """The thread count an interrupted run used (`run_info.json`), so its resumed part sums in the same order."""
     n = (RunDir(run_dir).read_run_info() or {}).get("threads")
     return int(n) if isinstance(n, int) and n > 0 else None
+
+
+def _warn_other_blas(run_dir: Path, current: str | None = None) -> str | None:
+    """Warn (and return the message) when a run is resumed on other OpenBLAS kernels than it started with (the
+    `machine.openblas_core` of its run_info.json; `current`: this process's, for tests): the fused decoders' products
+    then round differently, so the resumed part is not bit for bit what an uninterrupted run would have computed."""
+    from inrslam.machine import openblas_core
+
+    info = RunDir(run_dir).read_run_info() or {}
+    started = (info.get("machine") or {}).get("openblas_core")
+    now = openblas_core() if current is None else current
+    if not started or not now or started == now:
+        return None
+    msg = (f"{run_dir}: the run started on OpenBLAS kernels {started} and resumes on {now} (OPENBLAS_CORETYPE): "
+           "fused kernels round differently, so the result will not equal an uninterrupted run bit for bit")
+    warnings.warn(msg, InrslamWarning, stacklevel=2)
+    return msg
 
 
 def _evaluate(system: SlamSystem, writer: RunWriter, metrics: dict) -> Path:
