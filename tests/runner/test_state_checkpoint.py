@@ -177,14 +177,15 @@ def test_run_info_records_the_openblas_kernels_and_a_resume_on_others_warns(tmp_
     from inrslam.runner import _warn_other_blas
 
     run_slam(tiny_cfg(["data.max_frames=2"]), tmp_path / "r")
-    started = json.loads(RunDir(tmp_path / "r").run_info.read_text())["machine"]["openblas_core"]
+    info = json.loads(RunDir(tmp_path / "r").run_info.read_text())
+    started = info["machine"]["openblas_core"]
     assert started == openblas_core()
     if started is None:
         pytest.skip("no OpenBLAS whose kernel name can be read (SciPy's wheels bring one)")
-    assert _warn_other_blas(tmp_path / "r", current=started) is None  # the same kernels: silent
+    assert _warn_other_blas(tmp_path / "r", info, current=started) is None  # the same kernels: silent
     other = "Sandybridge" if started != "Sandybridge" else "Haswell"
     with pytest.warns(InrslamWarning, match=f"started on OpenBLAS kernels {started} and resumes on {other}"):
-        assert "bit for bit" in _warn_other_blas(tmp_path / "r", current=other)
+        assert "bit for bit" in _warn_other_blas(tmp_path / "r", info, current=other)
 
 
 @pytest.fixture

@@ -80,9 +80,10 @@ def resume_slam(run_dir: str | os.PathLike, progress: Progress | None = None) ->
         cfg = load_config(rd.config, preset=None, check_variants=False)  # checked when the run was made
         stage(log, f"opening the dataset {cfg.data.path}")
         dataset = open_dataset(cfg.data)
-        threads = _recorded_threads(run_dir) if not cfg.threads else None
+        info = rd.read_run_info() or {}  # what the interrupted run recorded of its machine and threads
+        threads = _recorded_threads(info) if not cfg.threads else None
         threads = threads or resolve_threads(cfg.threads)
-        _warn_other_blas(run_dir)
+        _warn_other_blas(run_dir, info)
         with thread_scope(threads), load_guard():
             stage(log, f"building the map and loading the checkpoint {rd.checkpoint}")
             system = system_class(cfg)(cfg, dataset)
@@ -160,19 +161,20 @@ def _initialisation_status(system: SlamSystem) -> Iterator[None]:
         report_progress(log, "init", total, total)
 
 
-def _recorded_threads(run_dir: Path) -> int | None:
-    """The thread count an interrupted run used (`run_info.json`), so its resumed part sums in the same order."""
-    n = (RunDir(run_dir).read_run_info() or {}).get("threads")
+def _recorded_threads(info: dict) -> int | None:
+    """The thread count an interrupted run used (`info`: its `run_info.json`), so its resumed part sums in the same
+    order."""
+    n = info.get("threads")
     return int(n) if isinstance(n, int) and n > 0 else None
 
 
-def _warn_other_blas(run_dir: Path, current: str | None = None) -> str | None:
-    """Warn (and return the message) when a run is resumed on other OpenBLAS kernels than it started with (the
-    `machine.openblas_core` of its run_info.json; `current`: this process's, for tests): the fused decoders' products
-    then round differently, so the resumed part is not bit for bit what an uninterrupted run would have computed."""
+def _warn_other_blas(run_dir: Path, info: dict, current: str | None = None) -> str | None:
+    """Warn (and return the message) when the run in `run_dir` is resumed on other OpenBLAS kernels than it started
+    with (`machine.openblas_core` of `info`, its run_info.json; `current`: this process's, for tests): the fused
+    decoders' products then round differently, so the resumed part is not bit for bit what an uninterrupted run
+    would have computed."""
     from inrslam.machine import openblas_core
 
-    info = RunDir(run_dir).read_run_info() or {}
     started = (info.get("machine") or {}).get("openblas_core")
     now = openblas_core() if current is None else current
     if not started or not now or started == now:
